@@ -1,0 +1,363 @@
+"""The one typed source of truth for every ekf_vo parameter.
+
+Each parameter is a dataclass field with a default, a unit, a description and a valid
+range (or a set of choices). The core reads `VoConfig`; the ROS nodes declare exactly
+these fields as ROS parameters (with the description and range in the descriptor); the
+CLI tools load the same fields from the shipped YAML; `config/ekf_vo.yaml` is generated
+from here (`ekf-vo-params --yaml`), and a test checks that it is up to date.
+
+Deliberately free of rclpy: the core imports it.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+from dataclasses import dataclass, field, fields
+from typing import Any, Iterable, Mapping
+
+
+class ConfigError(ValueError):
+    """A parameter value is missing, of the wrong type or out of range."""
+
+
+def param(default: Any, doc: str, unit: str = '', lo: float | None = None,
+          hi: float | None = None, choices: Iterable[str] | None = None,
+          group: str = '') -> Any:
+    """A dataclass field carrying its documentation, unit and valid range."""
+    return field(default=default, metadata={
+        'doc': doc, 'unit': unit, 'lo': lo, 'hi': hi,
+        'choices': tuple(choices) if choices else None, 'group': group})
+
+
+@dataclass
+class VoConfig:
+    """Parameters of the estimation core (camera-agnostic; units are SI or pixels).
+
+    Monocular scale is arbitrary: "m" below means map units, which are metres only when
+    `bootstrap_baseline_m` is the true distance between the two bootstrap frames.
+    """
+
+    # ---- front end (ekf_vo/core/features.py) ----
+    max_features: int = param(300, 'Target number of tracked corners.', 'count', 20, 5000,
+                              group='front end')
+    grid_rows: int = param(4, 'Bucketing grid rows: new corners are spread over the grid.',
+                           'count', 1, 32, group='front end')
+    grid_cols: int = param(6, 'Bucketing grid columns.', 'count', 1, 64, group='front end')
+    min_feature_distance_px: float = param(
+        10.0, 'Minimum distance between corners.', 'px', 1.0, 200.0, group='front end')
+    corner_quality: float = param(
+        0.005, 'Shi-Tomasi quality level relative to the best corner.', '', 1e-5, 0.5,
+        group='front end')
+    klt_window_px: int = param(21, 'KLT search window side.', 'px', 5, 101, group='front end')
+    klt_pyramid_levels: int = param(
+        4, 'KLT pyramid levels (more levels follow faster motion).', 'count', 0, 8,
+        group='front end')
+    klt_fb_max_px: float = param(
+        1.0, 'Forward-backward KLT check: drop tracks whose round trip misses by more.',
+        'px', 0.05, 20.0, group='front end')
+    redetect_ratio: float = param(
+        0.8, 'Detect new corners when fewer than this fraction of max_features survive.',
+        '', 0.0, 1.0, group='front end')
+
+    # ---- bootstrap (ekf_vo/core/bootstrap.py) ----
+    bootstrap_min_parallax_deg: float = param(
+        2.0, 'Median parallax angle the bootstrap pair must reach.', 'deg', 0.1, 45.0,
+        group='bootstrap')
+    bootstrap_min_inliers: int = param(
+        60, 'Essential-matrix inliers (with valid triangulation) the pair must have.',
+        'count', 8, 10000, group='bootstrap')
+    bootstrap_ransac_px: float = param(
+        1.0, 'Essential-matrix RANSAC threshold.', 'px', 0.1, 20.0, group='bootstrap')
+    bootstrap_max_frames: int = param(
+        60, 'Give up on the reference frame after this many frames and take a new one.',
+        'frames', 2, 10000, group='bootstrap')
+    bootstrap_baseline_m: float = param(
+        1.0, 'Distance assigned to the bootstrap baseline (sets the map scale).', 'm',
+        1e-6, 1e6, group='bootstrap')
+
+    # ---- EKF (ekf_vo/core/ekf.py) ----
+    estimator: str = param('ekf', 'Pose tracker: ekf (hybrid EKF), iekf (iterated EKF) or '
+                           'epnp (per-frame EPnP + refinement, the paper baseline).',
+                           choices=('ekf', 'iekf', 'epnp'), group='ekf')
+    iekf_iterations: int = param(2, 'Iterations of the iterated EKF update.', 'count', 1, 20,
+                                 group='ekf')
+    pixel_sigma_px: float = param(
+        1.0, 'Standard deviation of a feature measurement.', 'px', 0.01, 50.0, group='ekf')
+    accel_sigma: float = param(
+        2.0, 'Linear acceleration impulse noise (process noise, white, per sqrt(s)).',
+        'm/s^2', 1e-6, 1e4, group='ekf')
+    angular_accel_sigma: float = param(
+        2.0, 'Angular acceleration impulse noise (process noise).', 'rad/s^2', 1e-6, 1e4,
+        group='ekf')
+    init_velocity_sigma: float = param(
+        0.5, 'Initial standard deviation of the linear velocity.', 'm/s', 1e-6, 1e4,
+        group='ekf')
+    init_angular_velocity_sigma: float = param(
+        0.5, 'Initial standard deviation of the angular velocity.', 'rad/s', 1e-6, 1e4,
+        group='ekf')
+    init_pose_sigma: float = param(
+        1e-3, 'Initial standard deviation of position (m) and orientation (rad).', '',
+        1e-9, 10.0, group='ekf')
+    fading_memory: float = param(
+        1.0, 'Fading-memory factor S: P(k|k-1) = S F P F^T + G Q G^T (1 disables).', '',
+        1.0, 1.5, group='ekf')
+    default_dt_s: float = param(
+        0.1, 'Time step used when stamps are unusable (first frames, equal stamps).', 's',
+        1e-4, 10.0, group='ekf')
+    max_dt_s: float = param(
+        1.0, 'Reset tracking when the gap between two frames is longer.', 's', 1e-3, 1e3,
+        group='ekf')
+
+    # ---- robust update (ekf_vo/core/ransac.py) ----
+    one_point_ransac: bool = param(True, 'Use 1-point RANSAC (Civera 2010) in the update.',
+                                   group='ransac')
+    ransac_inlier_px: float = param(
+        2.0, 'Support threshold of a 1-point hypothesis (low-innovation inliers).', 'px',
+        0.1, 50.0, group='ransac')
+    ransac_probability: float = param(
+        0.99, 'Probability that at least one hypothesis is outlier-free.', '', 0.5, 0.99999,
+        group='ransac')
+    ransac_max_hypotheses: int = param(
+        50, 'Upper bound on 1-point hypotheses per frame.', 'count', 1, 10000,
+        group='ransac')
+    gate_probability: float = param(
+        0.99, 'Chi-square gate (2 dof) for the high-innovation rescue.', '', 0.5, 0.99999,
+        group='ransac')
+    max_update_points: int = param(
+        400, 'At most this many map points enter one update (spread over the image).',
+        'count', 6, 100000, group='ransac')
+
+    # ---- map (ekf_vo/core/map.py, triangulation.py) ----
+    triangulation_min_parallax_deg: float = param(
+        1.0, 'A new point is triangulated once its rays differ by this angle.', 'deg',
+        0.01, 45.0, group='map')
+    triangulation_max_reproj_px: float = param(
+        2.0, 'Reject a triangulated point whose reprojection error is larger.', 'px', 0.1,
+        50.0, group='map')
+    max_map_points: int = param(5000, 'Bound on the map size; oldest unseen culled first.',
+                                'count', 50, 1000000, group='map')
+    cull_after_misses: int = param(
+        3, 'Remove a map point after this many consecutive outlier verdicts.', 'count', 1,
+        1000, group='map')
+
+    # ---- tracking quality (ekf_vo/core/pipeline.py) ----
+    min_tracking_inliers: int = param(
+        12, 'Fewer update inliers than this counts as a failed frame.', 'count', 4, 10000,
+        group='quality')
+    max_failed_frames: int = param(
+        3, 'Declare tracking lost (and re-bootstrap) after this many failed frames.',
+        'frames', 1, 1000, group='quality')
+    max_position_sigma_m: float = param(
+        10.0, 'Declare tracking lost when the position std exceeds this.', 'm', 1e-3, 1e6,
+        group='quality')
+
+    def validate(self) -> 'VoConfig':
+        """Check types and ranges; raise ConfigError naming the parameter."""
+        validate_dataclass(self)
+        return self
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], strict: bool = True) -> 'VoConfig':
+        """Build from a dict (e.g. the `ros__parameters` of the YAML)."""
+        return from_mapping(cls, values, strict).validate()
+
+
+@dataclass
+class NodeConfig:
+    """Parameters of the ROS edge (vo_node); the core never sees these."""
+
+    image_transport: str = param('raw', 'Subscribe `image` (raw) or `image/compressed`.',
+                                 choices=('raw', 'compressed'), group='ros')
+    reliable_qos: bool = param(
+        False, 'Subscribe with reliable QoS instead of sensor-data (best effort) QoS.',
+        group='ros')
+    odom_frame: str = param('odom', 'frame_id of the published odometry and map.',
+                            group='ros')
+    base_frame: str = param('base_link', 'child_frame_id of the odometry (the robot body).',
+                            group='ros')
+    T_base_cam_xyz: tuple = param(
+        (0.0, 0.0, 0.0), 'Camera optical frame origin in the base frame.', 'm', group='ros')
+    T_base_cam_xyzw: tuple = param(
+        (-0.5, 0.5, -0.5, 0.5), 'Camera optical frame orientation in the base frame, '
+        'quaternion x y z w (default: REP-103 optical -> body rotation).', group='ros')
+    queue_size: int = param(
+        2, 'Frames waiting for the estimator; older ones are dropped and counted.', 'count',
+        1, 100, group='ros')
+    publish_path: bool = param(True, 'Publish ~/path (nav_msgs/Path) for RViz.', group='ros')
+    max_path_length: int = param(5000, 'Poses kept in ~/path.', 'count', 1, 1000000,
+                                 group='ros')
+    landmarks_every_n_frames: int = param(
+        5, 'Publish the landmark update for map_node every n frames.', 'frames', 1, 1000,
+        group='ros')
+
+    def validate(self) -> 'NodeConfig':
+        validate_dataclass(self)
+        if len(self.T_base_cam_xyz) != 3 or len(self.T_base_cam_xyzw) != 4:
+            raise ConfigError('T_base_cam_xyz needs 3 values and T_base_cam_xyzw 4')
+        norm = math.sqrt(sum(float(v) ** 2 for v in self.T_base_cam_xyzw))
+        if not 0.9 < norm < 1.1:
+            raise ConfigError(f'T_base_cam_xyzw must be a unit quaternion (norm {norm:.3f})')
+        return self
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], strict: bool = True) -> 'NodeConfig':
+        return from_mapping(cls, values, strict).validate()
+
+
+@dataclass
+class MapNodeConfig:
+    """Parameters of map_node."""
+
+    publish_rate_hz: float = param(1.0, 'Rate of `map_points` (PointCloud2).', 'Hz', 0.01,
+                                   100.0, group='map_node')
+    odom_frame: str = param('odom', 'frame_id of the published cloud.', group='map_node')
+
+    def validate(self) -> 'MapNodeConfig':
+        validate_dataclass(self)
+        return self
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], strict: bool = True
+                     ) -> 'MapNodeConfig':
+        return from_mapping(cls, values, strict).validate()
+
+
+# ---------------------------------------------------------------- generic helpers
+
+def validate_dataclass(obj: Any) -> None:
+    """Type and range check of every field against its metadata."""
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        default = f.default if f.default is not dataclasses.MISSING else None
+        meta = f.metadata
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ConfigError(f'{f.name} must be a bool, got {value!r}')
+            continue
+        if isinstance(default, (int, float)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f'{f.name} must be a number, got {value!r}')
+            if isinstance(default, int) and not isinstance(default, bool) \
+                    and float(value) != int(value):
+                raise ConfigError(f'{f.name} must be an integer, got {value!r}')
+            if not math.isfinite(float(value)):
+                raise ConfigError(f'{f.name} must be finite, got {value!r}')
+            if meta.get('lo') is not None and value < meta['lo']:
+                raise ConfigError(f'{f.name}={value} is below its minimum {meta["lo"]}')
+            if meta.get('hi') is not None and value > meta['hi']:
+                raise ConfigError(f'{f.name}={value} is above its maximum {meta["hi"]}')
+        if meta.get('choices') and value not in meta['choices']:
+            raise ConfigError(f'{f.name}={value!r} is not one of {meta["choices"]}')
+
+
+def from_mapping(cls: type, values: Mapping[str, Any], strict: bool = True) -> Any:
+    """Instantiate `cls` from a mapping; unknown keys raise when `strict`."""
+    names = {f.name: f for f in fields(cls)}
+    unknown = [k for k in values if k not in names]
+    if strict and unknown:
+        raise ConfigError(f'unknown parameter(s) for {cls.__name__}: {sorted(unknown)}')
+    kwargs = {}
+    for key, value in values.items():
+        if key not in names:
+            continue
+        default = names[key].default
+        if isinstance(default, float) and isinstance(value, int) \
+                and not isinstance(value, bool):
+            value = float(value)   # YAML "2" for a float parameter
+        if isinstance(default, int) and not isinstance(default, bool) \
+                and isinstance(value, float) and value.is_integer():
+            value = int(value)
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+def describe(f: dataclasses.Field) -> str:
+    """One-line description with unit and range, used in YAML and ROS descriptors."""
+    meta = f.metadata
+    text = meta['doc']
+    extras = []
+    if meta.get('unit'):
+        extras.append(f'unit: {meta["unit"]}')
+    if meta.get('lo') is not None:
+        extras.append(f'range: [{meta["lo"]}, {meta["hi"]}]')
+    if meta.get('choices'):
+        extras.append('choices: ' + ', '.join(meta['choices']))
+    if extras:
+        text += ' (' + '; '.join(extras) + ')'
+    return text
+
+
+def load_yaml_params(path: str, node_name: str = 'vo_node') -> dict[str, Any]:
+    """The `ros__parameters` of `node_name` in a ROS params YAML file."""
+    import yaml   # PyYAML comes with rclpy; imported lazily to keep the core light
+    with open(path, 'r', encoding='utf-8') as stream:
+        data = yaml.safe_load(stream) or {}
+    for key in (node_name, '/' + node_name, '/**'):
+        if key in data and 'ros__parameters' in data[key]:
+            return dict(data[key]['ros__parameters'])
+    raise ConfigError(f'{path}: no "{node_name}: ros__parameters:" section')
+
+
+def split_params(values: Mapping[str, Any]) -> tuple[VoConfig, NodeConfig]:
+    """Split a flat vo_node parameter dict into the core and the node configs."""
+    core_names = {f.name for f in fields(VoConfig)}
+    node_names = {f.name for f in fields(NodeConfig)}
+    unknown = set(values) - core_names - node_names - {'use_sim_time'}
+    if unknown:
+        raise ConfigError(f'unknown vo_node parameter(s): {sorted(unknown)}')
+    core = VoConfig.from_mapping({k: v for k, v in values.items() if k in core_names})
+    node = NodeConfig.from_mapping({k: v for k, v in values.items() if k in node_names})
+    return core, node
+
+
+def _yaml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(_yaml_value(v) for v in value) + ']'
+    return repr(value)
+
+
+def _yaml_section(node_name: str, classes: Iterable[type]) -> list[str]:
+    lines = [f'{node_name}:', '  ros__parameters:']
+    group = None
+    for cls in classes:
+        for f in fields(cls):
+            if f.metadata['group'] != group:
+                group = f.metadata['group']
+                lines += ['', f'    # ---- {group} ----']
+            lines.append(f'    # {describe(f)}')
+            lines.append(f'    {f.name}: {_yaml_value(f.default)}')
+    return lines
+
+
+def to_yaml() -> str:
+    """The shipped params file, generated so it can never disagree with the code."""
+    lines = ['# ekf_vo parameters. GENERATED from ekf_vo/config.py by `make params`;',
+             '# edit the code, not this file. Every parameter: meaning (unit; range).',
+             '# Use: vo_node --ros-args --params-file config/ekf_vo.yaml', '']
+    lines += _yaml_section('vo_node', (VoConfig, NodeConfig))
+    lines += [''] + _yaml_section('map_node', (MapNodeConfig,))
+    return '\n'.join(lines) + '\n'
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description='Print the ekf_vo parameters.')
+    parser.add_argument('--yaml', action='store_true', help='print the shipped YAML')
+    args = parser.parse_args(argv)
+    if args.yaml:
+        sys.stdout.write(to_yaml())
+        return 0
+    for cls in (VoConfig, NodeConfig, MapNodeConfig):
+        print(f'[{cls.__name__}]')
+        for f in fields(cls):
+            print(f'  {f.name} = {f.default!r}: {describe(f)}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

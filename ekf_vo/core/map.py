@@ -1,0 +1,157 @@
+"""The fixed, triangulated sparse map of the hybrid method.
+
+A landmark is identified by the id of the feature track that created it, so a frame's
+tracks look their landmarks up directly (no descriptor matching). Landmarks stay in the
+map after their track ends (they are still part of the published map) until culled:
+- after `cull_after_misses` consecutive outlier verdicts (a bad triangulation or a track
+  that slid onto another surface),
+- or, when the map exceeds `max_points`, the longest-unseen landmarks first.
+Arrays are kept in a dict of id -> row with numpy storage so lookups are vectorised.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class MapChanges:
+    """Landmarks added/updated and removed since the last call of `pop_changes`."""
+
+    ids: np.ndarray          #: (n,) int64 added or updated
+    X_world: np.ndarray      #: (n,3) their positions
+    n_obs: np.ndarray        #: (n,) int32 observation counts
+    removed_ids: np.ndarray  #: (m,) int64 culled
+
+
+class LandmarkMap:
+    """Sparse map: ids (N,) int64, X_world (N,3), observation bookkeeping."""
+
+    def __init__(self, max_points: int = 5000, cull_after_misses: int = 3) -> None:
+        self.max_points = int(max_points)
+        self.cull_after_misses = int(cull_after_misses)
+        self.clear()
+
+    def clear(self) -> None:
+        self._row: dict[int, int] = {}
+        cap = 256
+        self._ids = np.zeros(cap, np.int64)
+        self._X = np.zeros((cap, 3))
+        self._n_obs = np.zeros(cap, np.int32)
+        self._misses = np.zeros(cap, np.int32)
+        self._last_seen = np.zeros(cap, np.int64)
+        self._size = 0
+        self._changed: set[int] = set()
+        self._removed: set[int] = set()
+        self.n_culled = 0
+
+    def __len__(self) -> int:
+        return self._size
+
+    @property
+    def ids(self) -> np.ndarray:
+        return self._ids[:self._size]
+
+    @property
+    def X_world(self) -> np.ndarray:
+        return self._X[:self._size]
+
+    @property
+    def n_obs(self) -> np.ndarray:
+        return self._n_obs[:self._size]
+
+    def _grow(self, need: int) -> None:
+        cap = len(self._ids)
+        if need <= cap:
+            return
+        new = max(need, 2 * cap)
+        for name in ('_ids', '_n_obs', '_misses', '_last_seen'):
+            arr = getattr(self, name)
+            out = np.zeros(new, arr.dtype)
+            out[:cap] = arr
+            setattr(self, name, out)
+        X = np.zeros((new, 3))
+        X[:cap] = self._X
+        self._X = X
+
+    def add(self, ids: np.ndarray, X_world: np.ndarray, frame_index: int,
+            n_obs: int = 2) -> None:
+        """Insert new landmarks (ids already present are overwritten)."""
+        for lid, X in zip(np.asarray(ids, np.int64), np.asarray(X_world, float)):
+            lid = int(lid)
+            row = self._row.get(lid)
+            if row is None:
+                self._grow(self._size + 1)
+                row = self._size
+                self._size += 1
+                self._row[lid] = row
+                self._ids[row] = lid
+            self._X[row] = X
+            self._n_obs[row] = n_obs
+            self._misses[row] = 0
+            self._last_seen[row] = frame_index
+            self._changed.add(lid)
+            self._removed.discard(lid)
+        self._enforce_bound()
+
+    def lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For track ids (n,): mask (n,) of those with a landmark, and their X (m,3)."""
+        rows = np.array([self._row.get(int(i), -1) for i in ids], dtype=np.int64)
+        mask = rows >= 0
+        return mask, self._X[rows[mask]]
+
+    def contains(self, ids: np.ndarray) -> np.ndarray:
+        return np.array([int(i) in self._row for i in ids], dtype=bool)
+
+    def record_observations(self, ids: np.ndarray, inlier: np.ndarray,
+                            frame_index: int) -> np.ndarray:
+        """Count inlier / outlier verdicts; cull repeated outliers. Returns culled ids."""
+        rows = np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+        inlier = np.asarray(inlier, bool)
+        self._n_obs[rows[inlier]] += 1
+        self._misses[rows[inlier]] = 0
+        self._last_seen[rows] = frame_index
+        self._misses[rows[~inlier]] += 1
+        bad = ids[~inlier][self._misses[rows[~inlier]] >= self.cull_after_misses]
+        self.remove(bad)
+        return bad
+
+    def remove(self, ids: np.ndarray) -> None:
+        """Delete landmarks (swap-with-last keeps the arrays compact)."""
+        for lid in np.asarray(ids, np.int64):
+            lid = int(lid)
+            row = self._row.pop(lid, None)
+            if row is None:
+                continue
+            last = self._size - 1
+            if row != last:
+                moved = int(self._ids[last])
+                for arr in (self._ids, self._X, self._n_obs, self._misses, self._last_seen):
+                    arr[row] = arr[last]
+                self._row[moved] = row
+            self._size -= 1
+            self._changed.discard(lid)
+            self._removed.add(lid)
+            self.n_culled += 1
+
+    def _enforce_bound(self) -> None:
+        excess = self._size - self.max_points
+        if excess > 0:
+            oldest = np.argsort(self._last_seen[:self._size], kind='stable')[:excess]
+            self.remove(self._ids[oldest].copy())
+
+    def pop_changes(self) -> MapChanges:
+        """Changes since the previous call (for the map_node landmark stream)."""
+        changed = np.array(sorted(self._changed), dtype=np.int64)
+        mask, X = self.lookup(changed)
+        rows = np.array([self._row[int(i)] for i in changed[mask]], dtype=np.int64)
+        out = MapChanges(ids=changed[mask], X_world=X,
+                         n_obs=self._n_obs[rows] if len(rows) else np.zeros(0, np.int32),
+                         removed_ids=np.array(sorted(self._removed), dtype=np.int64))
+        self._changed.clear()
+        self._removed.clear()
+        return out

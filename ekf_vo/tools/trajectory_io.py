@@ -1,0 +1,233 @@
+"""Trajectory file I/O: TUM text files and ground truth from rosbag2 bags.
+
+Conventions
+-----------
+* Poses are ``T_world_cam`` (4x4 homogeneous, float64): they map points from the camera
+  optical frame into the world frame, i.e. ``p_world = T_world_cam @ p_cam``.  The
+  translation column is therefore the camera centre expressed in the world frame.
+* Timestamps are float64 seconds (for ROS data: ``header.stamp.sec + 1e-9 * nanosec``).
+* Quaternions are Hamilton, scalar-last, named ``*_xyzw`` (TUM and ROS order).
+
+TUM format (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
+
+    # timestamp tx ty tz qx qy qz qw
+    1700000000.033333 0.1 0.0 0.0 0.0 0.0 0.0 1.0
+
+One pose per line, whitespace separated, lines starting with ``#`` are comments.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+logger = logging.getLogger(__name__)
+
+PathLike = Union[str, Path]
+
+#: Default ground-truth topic (geometry_msgs/msg/PoseStamped) in the project's bags.
+GT_TOPIC = '/ground_truth/pose'
+
+_TUM_HEADER = '# timestamp tx ty tz qx qy qz qw'
+_BAG_SUFFIXES = ('.mcap', '.db3')
+
+
+def poses_from_tum_rows(t_xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """Build homogeneous poses from positions and quaternions.
+
+    Args:
+        t_xyz: (N, 3) translations (camera centre in world frame, metres).
+        quat_xyzw: (N, 4) unit quaternions, scalar last; re-normalised here.
+
+    Returns:
+        (N, 4, 4) float64 ``T_world_cam``.
+
+    Raises:
+        ValueError: a quaternion has (near) zero norm or shapes mismatch.
+    """
+    t_xyz = np.asarray(t_xyz, dtype=np.float64).reshape(-1, 3)
+    quat_xyzw = np.asarray(quat_xyzw, dtype=np.float64).reshape(-1, 4)
+    if t_xyz.shape[0] != quat_xyzw.shape[0]:
+        raise ValueError(f'{t_xyz.shape[0]} translations but {quat_xyzw.shape[0]} quaternions')
+    n = t_xyz.shape[0]
+    T = np.tile(np.eye(4), (n, 1, 1))
+    if n == 0:
+        return T
+    norms = np.linalg.norm(quat_xyzw, axis=1)
+    if np.any(norms < 1e-9):
+        bad = int(np.argmax(norms < 1e-9))
+        raise ValueError(f'quaternion {bad} has zero norm: {quat_xyzw[bad]}')
+    T[:, :3, :3] = Rotation.from_quat(quat_xyzw / norms[:, None]).as_matrix()
+    T[:, :3, 3] = t_xyz
+    return T
+
+
+def tum_rows_from_poses(T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split poses into positions and quaternions.
+
+    Args:
+        T_world_cam: (N, 4, 4) poses (rotation block must be a rotation matrix).
+
+    Returns:
+        ``(t_xyz (N, 3), quat_xyzw (N, 4))``; quaternion sign chosen with ``qw >= 0``.
+    """
+    T = np.asarray(T_world_cam, dtype=np.float64).reshape(-1, 4, 4)
+    if T.shape[0] == 0:
+        return np.zeros((0, 3)), np.zeros((0, 4))
+    quat_xyzw = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+    quat_xyzw[quat_xyzw[:, 3] < 0] *= -1.0
+    return T[:, :3, 3].copy(), quat_xyzw
+
+
+def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory file.
+
+    Args:
+        path: text file with lines ``timestamp tx ty tz qx qy qz qw``; ``#`` comments and
+            blank lines are ignored.
+
+    Returns:
+        ``(stamps_s (N,), T_world_cam (N, 4, 4))`` in file order (not re-sorted).
+
+    Raises:
+        FileNotFoundError: missing file.
+        ValueError: a data line does not have exactly 8 numeric columns.
+    """
+    path = Path(path)
+    stamps: list[float] = []
+    rows: list[list[float]] = []
+    with path.open('r', encoding='utf-8') as f:
+        for lineno, line in enumerate(f, start=1):
+            line = line.split('#', 1)[0].strip()
+            if not line:
+                continue
+            parts = line.replace(',', ' ').split()
+            if len(parts) != 8:
+                raise ValueError(
+                    f'{path}:{lineno}: expected 8 columns '
+                    f'(timestamp tx ty tz qx qy qz qw), got {len(parts)}')
+            try:
+                vals = [float(p) for p in parts]
+            except ValueError as exc:
+                raise ValueError(f'{path}:{lineno}: non-numeric value: {exc}') from exc
+            stamps.append(vals[0])
+            rows.append(vals[1:])
+    data = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
+    T = poses_from_tum_rows(data[:, :3], data[:, 3:7])
+    logger.debug('read %d poses from %s', len(stamps), path)
+    return np.asarray(stamps, dtype=np.float64), T
+
+
+def write_tum(path: PathLike, stamps_s: np.ndarray, T_world_cam: np.ndarray) -> None:
+    """Write a TUM trajectory file (with a ``#`` header line).
+
+    Timestamps are written with the shortest representation that round-trips the float64
+    exactly (positional notation, no exponent); translations and quaternions with 9 decimals.
+
+    Args:
+        path: output file; parent directories are created.
+        stamps_s: (N,) timestamps in seconds.
+        T_world_cam: (N, 4, 4) poses, camera optical frame -> world.
+
+    Raises:
+        ValueError: shapes do not match.
+    """
+    stamps = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ValueError(f'T_world_cam must have shape (N, 4, 4), got {T.shape}')
+    if T.shape[0] != stamps.shape[0]:
+        raise ValueError(f'{stamps.shape[0]} stamps but {T.shape[0]} poses')
+    t_xyz, q_xyzw = tum_rows_from_poses(T)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = [_TUM_HEADER]
+    for s, t, q in zip(stamps, t_xyz, q_xyzw):
+        stamp = np.format_float_positional(s, unique=True, trim='-')
+        lines.append(stamp + ' ' + ' '.join(f'{v:.9f}' for v in (*t, *q)))
+    path.write_text('\n'.join(lines) + '\n', encoding='utf-8')
+    logger.debug('wrote %d poses to %s', stamps.shape[0], path)
+
+
+def is_bag_path(path: PathLike) -> bool:
+    """True if ``path`` looks like a rosbag2 bag (directory, ``.mcap`` or ``.db3`` file)."""
+    path = Path(path)
+    return path.is_dir() or path.suffix.lower() in _BAG_SUFFIXES
+
+
+def _pose_of(msg: object, msgtype: str) -> object:
+    """Return the geometry_msgs/Pose inside a supported message."""
+    if msgtype == 'geometry_msgs/msg/PoseStamped':
+        return msg.pose  # type: ignore[attr-defined]
+    if msgtype in ('geometry_msgs/msg/PoseWithCovarianceStamped', 'nav_msgs/msg/Odometry'):
+        return msg.pose.pose  # type: ignore[attr-defined]
+    raise ValueError(f'unsupported ground-truth message type {msgtype}')
+
+
+def read_gt_from_bag(path: PathLike, topic: str = GT_TOPIC) -> tuple[np.ndarray, np.ndarray]:
+    """Read a ground-truth trajectory from a rosbag2 bag.
+
+    The topic should carry ``geometry_msgs/msg/PoseStamped`` whose pose is ``T_world_cam``
+    (``PoseWithCovarianceStamped`` and ``nav_msgs/msg/Odometry`` are accepted too).  Time is
+    ``header.stamp``; messages with a zero stamp fall back to the bag receive time.
+
+    Args:
+        path: bag directory (with metadata.yaml), or a single ``.mcap`` / ``.db3`` file.
+        topic: ground-truth topic name.
+
+    Returns:
+        ``(stamps_s (N,), T_world_cam (N, 4, 4))`` sorted by time.
+
+    Raises:
+        FileNotFoundError: missing bag.
+        ValueError: topic absent, of an unsupported type, or without messages.
+    """
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    stamps: list[float] = []
+    t_rows: list[tuple[float, float, float]] = []
+    q_rows: list[tuple[float, float, float, float]] = []
+    n_fallback = 0
+    with Reader(Path(path)) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        if not conns:
+            available = sorted({f'{c.topic} [{c.msgtype}]' for c in reader.connections})
+            raise ValueError(f'topic {topic!r} not in bag {path}; available: {available}')
+        for conn, t_ns, raw in reader.messages(connections=conns):
+            msg = typestore.deserialize_cdr(raw, conn.msgtype)
+            pose = _pose_of(msg, conn.msgtype)
+            stamp = msg.header.stamp
+            if stamp.sec == 0 and stamp.nanosec == 0:
+                n_fallback += 1
+                stamps.append(t_ns * 1e-9)
+            else:
+                stamps.append(stamp.sec + 1e-9 * stamp.nanosec)
+            p, o = pose.position, pose.orientation
+            t_rows.append((p.x, p.y, p.z))
+            q_rows.append((o.x, o.y, o.z, o.w))
+    if not stamps:
+        raise ValueError(f'topic {topic!r} in bag {path} has no messages')
+    if n_fallback:
+        logger.warning('%d/%d ground-truth messages had a zero header stamp; used bag time',
+                       n_fallback, len(stamps))
+    stamps_arr = np.asarray(stamps, dtype=np.float64)
+    T = poses_from_tum_rows(np.asarray(t_rows), np.asarray(q_rows))
+    order = np.argsort(stamps_arr, kind='stable')
+    logger.debug('read %d ground-truth poses from %s %s', stamps_arr.size, path, topic)
+    return stamps_arr[order], T[order]
+
+
+def read_trajectory(path: PathLike, topic: str = GT_TOPIC) -> tuple[np.ndarray, np.ndarray]:
+    """Read a trajectory from a TUM file or (if :func:`is_bag_path`) a rosbag2 bag topic.
+
+    Returns:
+        ``(stamps_s (N,), T_world_cam (N, 4, 4))``.
+    """
+    if is_bag_path(path):
+        return read_gt_from_bag(path, topic)
+    return read_tum(path)
