@@ -90,6 +90,37 @@ def rotated_by_quat_conj_jacobian(q_wxyz: np.ndarray, y: np.ndarray
     return out, J
 
 
+def motion_model(x: np.ndarray, dt: float, noise: np.ndarray | None = None) -> np.ndarray:
+    """x' = f(x, n) of the constant-velocity model with impulses n = [a, alpha] (6,)."""
+    a, alpha = (np.zeros(3), np.zeros(3)) if noise is None else (noise[:3], noise[3:])
+    out = x.copy()
+    v = x[VEL] + a * dt
+    w = x[ANG] + alpha * dt
+    out[POS] = x[POS] + v * dt
+    out[QUAT] = geo.quat_multiply(x[QUAT], geo.rotvec_to_quat(w * dt))
+    out[VEL] = v
+    out[ANG] = w
+    return out
+
+
+def motion_jacobians(x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """F = df/dx (13x13) and G = df/dn (13x6) at n = 0."""
+    q, w = x[QUAT], x[ANG]
+    dq = geo.rotvec_to_quat(w * dt)
+    dq_dtheta = geo.rotvec_to_quat_jacobian(w * dt)
+    Lq = geo.quat_left_matrix(q)
+    F = np.eye(STATE_DIM)
+    F[POS, VEL] = np.eye(3) * dt
+    F[QUAT, QUAT] = geo.quat_right_matrix(dq)            # q * dq = Rmat(dq) q
+    F[QUAT, ANG] = Lq @ dq_dtheta * dt
+    G = np.zeros((STATE_DIM, 6))
+    G[POS, 0:3] = np.eye(3) * dt * dt
+    G[VEL, 0:3] = np.eye(3) * dt
+    G[QUAT, 3:6] = Lq @ dq_dtheta * dt * dt
+    G[ANG, 3:6] = np.eye(3) * dt
+    return F, G
+
+
 class CameraEKF:
     """13-state camera EKF. Attributes: x (13,), P (13,13), K (3,3) intrinsics."""
 
@@ -133,29 +164,11 @@ class CameraEKF:
         """Constant-velocity prediction over dt seconds (Jacobians at the prior state)."""
         if not dt > 0.0:
             raise ValueError(f'dt must be positive, got {dt}')
-        r, q, v, w = self.x[POS], self.x[QUAT], self.x[VEL], self.x[ANG]
-        dq = geo.rotvec_to_quat(w * dt)
-        J_exp = geo.rotvec_to_quat_jacobian(w * dt)          # d quat(theta) / d theta
-        Lq = geo.quat_left_matrix(q)
-
-        x_new = self.x.copy()
-        x_new[POS] = r + v * dt
-        x_new[QUAT] = geo.quat_multiply(q, dq)
-
-        F = np.eye(STATE_DIM)
-        F[POS, VEL] = np.eye(3) * dt
-        F[QUAT, QUAT] = geo.quat_right_matrix(dq)            # q * dq = Rmat(dq) q
-        F[QUAT, ANG] = Lq @ J_exp * dt
-        G = np.zeros((STATE_DIM, 6))
-        G[POS, 0:3] = np.eye(3) * dt * dt
-        G[VEL, 0:3] = np.eye(3) * dt
-        G[QUAT, 3:6] = Lq @ J_exp * dt * dt
-        G[ANG, 3:6] = np.eye(3) * dt
+        F, G = motion_jacobians(self.x, dt)
         Qn = np.diag([accel_sigma ** 2] * 3 + [angular_accel_sigma ** 2] * 3)
-
         # fading memory (Qi et al. 2016): inflate the propagated prior by S >= 1
         self.P = fading_memory * (F @ self.P @ F.T) + G @ Qn @ G.T
-        self.x = x_new
+        self.x = motion_model(self.x, dt)
         self._normalise_quaternion()
 
     def _normalise_quaternion(self) -> None:
@@ -199,18 +212,27 @@ class CameraEKF:
         return px, in_front, H.reshape(2 * n, STATE_DIM)
 
     # ------------------------------------------------------------------ update
-    def gain(self, H: np.ndarray, sigma_px: float) -> np.ndarray:
-        """Kalman gain by the Woodbury identity (13x13 solve instead of 2n x 2n)."""
-        r_inv = 1.0 / (sigma_px * sigma_px)
-        B = (self.P @ H.T) * r_inv                     # 13 x 2n
+    @staticmethod
+    def _r_inv(sigma_px: float | np.ndarray, n: int) -> np.ndarray:
+        """Diagonal of R^-1 (2n,), from one sigma or one sigma per point (n,)."""
+        sigma = np.broadcast_to(np.asarray(sigma_px, dtype=float), (n,))
+        return np.repeat(1.0 / (sigma * sigma), 2)
+
+    def gain(self, H: np.ndarray, sigma_px: float | np.ndarray) -> np.ndarray:
+        """Kalman gain by the Woodbury identity (13x13 solve instead of 2n x 2n).
+
+        K = B - C (I + C)^-1 B, B = P H^T R^-1, C = B H (METHOD.md sec. 1 form (c))."""
+        r_inv = self._r_inv(sigma_px, H.shape[0] // 2)
+        B = (self.P @ H.T) * r_inv[None, :]            # 13 x 2n
         C = B @ H                                      # 13 x 13
         return B - C @ np.linalg.solve(np.eye(STATE_DIM) + C, B)
 
-    def update(self, z_px: np.ndarray, X_world: np.ndarray, sigma_px: float,
+    def update(self, z_px: np.ndarray, X_world: np.ndarray, sigma_px: float | np.ndarray,
                iterations: int = 1) -> UpdateStats:
         """EKF (iterations=1) or iterated EKF (Gauss-Newton) update with n points.
 
-        z_px: (n,2) measured ideal pixels; X_world: (n,3) their fixed map points."""
+        z_px: (n,2) measured ideal pixels; X_world: (n,3) their fixed map points;
+        sigma_px: pixel noise std, one value or one per point (n,) (diagonal R)."""
         n = len(z_px)
         if n == 0:
             self.last_update = UpdateStats()
@@ -236,7 +258,8 @@ class CameraEKF:
         self.x = x_i
         # Joseph form: P+ = (I-KH) P (I-KH)^T + K R K^T; symmetric PSD under rounding
         I_KH = np.eye(STATE_DIM) - K @ H
-        self.P = I_KH @ self.P @ I_KH.T + (sigma_px * sigma_px) * (K @ K.T)
+        r_diag = 1.0 / self._r_inv(sigma_px, n)
+        self.P = I_KH @ self.P @ I_KH.T + (K * r_diag[None, :]) @ K.T
         self._normalise_quaternion()
         if not np.all(np.isfinite(self.x)) or not np.all(np.isfinite(self.P)):
             raise FilterError('state or covariance became non-finite in the update')
@@ -246,21 +269,24 @@ class CameraEKF:
         self.last_update = stats
         return stats
 
-    def _nis(self, H: np.ndarray, y: np.ndarray, sigma_px: float) -> float:
-        """y^T S^-1 y with S = H P H^T + r I, via Woodbury (no 2n x 2n inverse)."""
-        r_inv = 1.0 / (sigma_px * sigma_px)
-        Hty = H.T @ y * r_inv
-        C = (self.P @ H.T) @ H * r_inv
-        return float(y @ y * r_inv
+    def _nis(self, H: np.ndarray, y: np.ndarray, sigma_px: float | np.ndarray) -> float:
+        """y^T S^-1 y with S = H P H^T + R, via Woodbury (no 2n x 2n inverse):
+        S^-1 = R^-1 - R^-1 H (I + P H^T R^-1 H)^-1 P H^T R^-1."""
+        r_inv = self._r_inv(sigma_px, H.shape[0] // 2)
+        Hty = H.T @ (y * r_inv)
+        C = (self.P @ H.T) @ (H * r_inv[:, None])
+        return float(y @ (y * r_inv)
                      - Hty @ np.linalg.solve(np.eye(STATE_DIM) + C, self.P @ Hty))
 
-    def innovation_covariances(self, H: np.ndarray, sigma_px: float) -> np.ndarray:
+    def innovation_covariances(self, H: np.ndarray, sigma_px: float | np.ndarray
+                               ) -> np.ndarray:
         """Per-point 2x2 innovation covariances S_i = H_i P H_i^T + R_i, (n,2,2)."""
         Hn = H.reshape(-1, 2, STATE_DIM)[:, :, POSE]
         P = self.P[POSE, POSE]
         S = Hn @ P @ Hn.transpose(0, 2, 1)
-        S[:, 0, 0] += sigma_px ** 2
-        S[:, 1, 1] += sigma_px ** 2
+        r = 1.0 / self._r_inv(sigma_px, len(Hn))[::2]
+        S[:, 0, 0] += r
+        S[:, 1, 1] += r
         return S
 
     def single_point_states(self, H: np.ndarray, y: np.ndarray, idx: np.ndarray,
@@ -272,8 +298,9 @@ class CameraEKF:
         yn = y.reshape(-1, 2)[idx]                             # (h,2)
         PHt = self.P @ Hn.transpose(0, 2, 1)                   # (h,13,2)
         S = Hn @ PHt
-        S[:, 0, 0] += sigma_px ** 2
-        S[:, 1, 1] += sigma_px ** 2
+        r = np.broadcast_to(np.asarray(sigma_px, float) ** 2, (H.shape[0] // 2,))[idx]
+        S[:, 0, 0] += r
+        S[:, 1, 1] += r
         K = PHt @ np.linalg.inv(S)
         states = self.x[None, :] + (K @ yn[:, :, None])[:, :, 0]
         states[:, QUAT] /= np.linalg.norm(states[:, QUAT], axis=1, keepdims=True)

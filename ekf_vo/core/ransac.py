@@ -52,7 +52,8 @@ def _project_states(states: np.ndarray, X_world: np.ndarray, K: np.ndarray) -> n
     return np.stack((u, v), axis=-1)
 
 
-def robust_update(ekf: CameraEKF, z_px: np.ndarray, X_world: np.ndarray, sigma_px: float,
+def robust_update(ekf: CameraEKF, z_px: np.ndarray, X_world: np.ndarray,
+                  sigma_px: float | np.ndarray,
                   rng: np.random.Generator, one_point: bool = True,
                   inlier_px: float = 2.0, probability: float = 0.99,
                   max_hypotheses: int = 50, gate_probability: float = 0.99,
@@ -63,6 +64,7 @@ def robust_update(ekf: CameraEKF, z_px: np.ndarray, X_world: np.ndarray, sigma_p
     result = RobustUpdateResult(inliers=np.zeros(n, bool))
     if n == 0:
         return result
+    sigma = np.broadcast_to(np.asarray(sigma_px, dtype=float), (n,))
     px_pred, in_front, H = ekf.observe(X_world)
     y = (z_px - px_pred)
     valid = in_front & np.all(np.isfinite(y), axis=1)
@@ -75,7 +77,7 @@ def robust_update(ekf: CameraEKF, z_px: np.ndarray, X_world: np.ndarray, sigma_p
         while tried < n_hyp:
             # draw a batch so numpy does the projections of several hypotheses at once
             batch = rng.choice(candidates, size=min(n_hyp - tried, 16), replace=True)
-            states = ekf.single_point_states(H, y, batch, sigma_px)
+            states = ekf.single_point_states(H, y, batch, sigma)
             px_h = _project_states(states, X_world, ekf.K)                  # (h,n,2)
             err = np.linalg.norm(px_h - z_px[None], axis=2)
             support = (err < inlier_px) & valid[None]
@@ -94,14 +96,14 @@ def robust_update(ekf: CameraEKF, z_px: np.ndarray, X_world: np.ndarray, sigma_p
         result.n_hypotheses = tried
     else:
         # plain innovation gate on the prior
-        S = ekf.innovation_covariances(H, sigma_px)
+        S = ekf.innovation_covariances(H, sigma)
         d2 = np.einsum('ni,nij,nj->n', y, np.linalg.inv(S), y)
         low = valid & (d2 < gate)
 
     result.n_low_innovation = int(np.count_nonzero(low))
     if result.n_low_innovation == 0:
         return result
-    result.stats = ekf.update(z_px[low], X_world[low], sigma_px, iterations)
+    result.stats = ekf.update(z_px[low], X_world[low], sigma[low], iterations)
     inliers = low.copy()
 
     if one_point:
@@ -110,11 +112,11 @@ def robust_update(ekf: CameraEKF, z_px: np.ndarray, X_world: np.ndarray, sigma_p
         if len(rest):
             px_r, front_r, H_r = ekf.observe(X_world[rest])
             y_r = z_px[rest] - px_r
-            S_r = ekf.innovation_covariances(H_r, sigma_px)
+            S_r = ekf.innovation_covariances(H_r, sigma[rest])
             d2 = np.einsum('ni,nij,nj->n', y_r, np.linalg.inv(S_r), y_r)
             rescued = rest[front_r & (d2 < gate)]
             if len(rescued):
-                ekf.update(z_px[rescued], X_world[rescued], sigma_px, iterations)
+                ekf.update(z_px[rescued], X_world[rescued], sigma[rescued], iterations)
                 inliers[rescued] = True
                 result.n_rescued = len(rescued)
     result.inliers = inliers

@@ -1,0 +1,41 @@
+"""Shared helpers of the benchmarks: data location, JSON output."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: ../shared/data relative to the repository root (overridable for other checkouts)
+SHARED_DATA = Path(os.environ.get(
+    'EKF_VO_SHARED_DATA', Path(__file__).resolve().parents[2].parent / 'shared' / 'data'))
+
+
+def shared_data(name: str) -> Path | None:
+    """Path of a folder of ../shared/data, or None when absent (a user's fresh clone)."""
+    path = SHARED_DATA / name
+    return path if path.is_dir() else None
+
+
+def machine() -> str:
+    return f'{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}'
+
+
+def to_jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    return obj
+
+
+def write_json(path: Path, data: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(to_jsonable(data), indent=1))

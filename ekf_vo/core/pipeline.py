@@ -1,0 +1,424 @@
+"""Per-frame visual odometry pipeline: bootstrap, EKF tracking, map growth, loss handling.
+
+METHOD.md section 1, step by step, per frame:
+  INITIALISING: keep a reference frame; try the two-view bootstrap against each new frame
+                (essential matrix + triangulation) until one has enough parallax and
+                inliers; the EKF starts at the second frame's pose with the velocity of
+                the pair (METHOD.md sec. 1 step 2).
+  TRACKING:     predict (constant velocity, real dt) -> track features with the predicted
+                landmark pixels as the KLT prior -> robust EKF update with the fixed map
+                points (1-point RANSAC) -> triangulate tracks with enough parallax between
+                their first observation and now, with the EKF poses -> output.
+  LOST:         too many failed frames or a covariance blow-up: drop the map and
+                re-bootstrap, attaching the new map to the last good pose (odom continuity)
+                with the scale carried over from the last velocity.
+Speaks numpy arrays, integer nanosecond stamps and named frames; no ROS types.
+"""
+from __future__ import annotations
+
+import enum
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import VoConfig
+from . import geometry as geo
+from .bootstrap import TwoViewBootstrap
+from .camera import PinholeCamera
+from .ekf import POS, QUAT, VEL, CameraEKF, FilterError
+from .features import FeatureTracker, Tracks
+from .map import LandmarkMap
+from .pnp import solve_epnp
+from .ransac import robust_update
+from .triangulation import triangulate_points
+
+logger = logging.getLogger(__name__)
+
+#: smallest variance (m^2, rad^2) of a published pose: a zero covariance would read as
+#: infinite confidence to robot_localization (ROS_NOTES.md)
+MIN_VARIANCE = 1e-9
+
+
+class TrackingState(enum.Enum):
+    INITIALISING = 'initialising'
+    TRACKING = 'tracking'
+    LOST = 'lost'
+
+
+@dataclass
+class FrameResult:
+    """What the pipeline says about one frame. Pose fields are None unless `ok`."""
+
+    stamp_ns: int
+    state: TrackingState
+    ok: bool = False                        #: a pose worth publishing
+    T_world_cam: np.ndarray | None = None   #: 4x4 camera optical frame -> world
+    pose_cov: np.ndarray | None = None      #: 6x6 (position, world rotation vector)
+    twist_cam: np.ndarray | None = None     #: (6,) v^C [m/s], w^C [rad/s], camera frame
+    twist_cov: np.ndarray | None = None     #: 6x6
+    n_tracks: int = 0
+    n_matches: int = 0                      #: tracks with a landmark used in the update
+    n_inliers: int = 0
+    n_new_points: int = 0
+    map_size: int = 0
+    bootstrapped: bool = False              #: this frame completed a (re-)bootstrap
+    message: str = ''                       #: why not ok / what happened
+    timings_ms: dict = field(default_factory=dict)
+    track_ids: np.ndarray | None = None     #: (n,) for debug drawing
+    track_px: np.ndarray | None = None      #: (n,2) raw pixels
+    track_inlier: np.ndarray | None = None  #: (n,) bool, used as an inlier this frame
+    track_has_point: np.ndarray | None = None
+
+
+@dataclass
+class _Reference:
+    """The first frame of a bootstrap pair."""
+
+    stamp_ns: int
+    frame_index: int
+    ids: np.ndarray
+    px_ideal: np.ndarray
+    T_world_cam: np.ndarray | None  # known pose (ground-truth bootstrap) if given
+
+
+class VisualOdometry:
+    """Monocular VO with the hybrid camera-only EKF. One instance per camera."""
+
+    def __init__(self, cfg: VoConfig, camera: PinholeCamera, seed: int = 0) -> None:
+        self.cfg = cfg.validate()
+        self.camera = camera
+        self.tracker = FeatureTracker(cfg)
+        self.bootstrapper = TwoViewBootstrap(cfg, camera.K)
+        self.ekf = CameraEKF(camera.K)
+        self.map = LandmarkMap(cfg.max_map_points, cfg.cull_after_misses)
+        self.rng = np.random.default_rng(seed)
+        self.frame_index = -1
+        self.n_resets = 0
+        self._anchor_T_world_cam = np.eye(4)   # where a new map is attached
+        self._anchor_speed = None              # m/s carried over a re-bootstrap
+        self._reset_state()
+
+    # ------------------------------------------------------------------ control
+    def _reset_state(self) -> None:
+        self.state = TrackingState.INITIALISING
+        self.tracker.reset()
+        self.map.clear()
+        self._ref: _Reference | None = None
+        self._last_stamp_ns: int | None = None
+        self._failed_frames = 0
+        # candidate tracks for triangulation: id -> (frame index, ideal px, world bearing)
+        self._cand_frame: dict[int, int] = {}
+        self._cand_px: dict[int, np.ndarray] = {}
+        self._cand_bearing: dict[int, np.ndarray] = {}
+        self._banned: set[int] = set()
+        self._T_world_cam_at: dict[int, np.ndarray] = {}
+
+    def reset(self, reason: str = 'requested') -> None:
+        """Drop the map and re-bootstrap; keep the world frame at the last good pose."""
+        if self.state == TrackingState.TRACKING:
+            self._anchor_T_world_cam = self.ekf.T_world_cam
+            self._anchor_speed = float(np.linalg.norm(self.ekf.x[VEL]))
+        logger.info('VO reset: %s', reason)
+        self.n_resets += 1
+        self._reset_state()
+
+    # ------------------------------------------------------------------ main entry
+    def process(self, gray: np.ndarray, stamp_ns: int,
+                known_T_world_cam: np.ndarray | None = None) -> FrameResult:
+        """Process one grey image (uint8 HxW) taken at `stamp_ns` (int nanoseconds).
+
+        `known_T_world_cam` is only for the papers' ground-truth bootstrap (METHOD.md:
+        "the first two ground-truth poses fix the scale"); the pipeline never reads it
+        once tracking."""
+        t0 = time.perf_counter()
+        stamp_ns = int(stamp_ns)
+        if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
+            return FrameResult(stamp_ns, self.state, message='stamp not increasing: skipped')
+        if gray.shape[:2] != (self.camera.height, self.camera.width):
+            return FrameResult(stamp_ns, self.state, message=(
+                f'image {gray.shape[1]}x{gray.shape[0]} does not match the camera '
+                f'{self.camera.width}x{self.camera.height}: skipped'))
+        if self._last_stamp_ns is not None and self.state == TrackingState.TRACKING and \
+                (stamp_ns - self._last_stamp_ns) * 1e-9 > self.cfg.max_dt_s:
+            self.reset(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s')
+        self.frame_index += 1
+        if self.state == TrackingState.TRACKING:
+            result = self._track(gray, stamp_ns)
+        else:
+            result = self._initialise(gray, stamp_ns, known_T_world_cam)
+        self._last_stamp_ns = stamp_ns
+        result.map_size = len(self.map)
+        result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
+        return result
+
+    # ------------------------------------------------------------------ bootstrap
+    def _initialise(self, gray: np.ndarray, stamp_ns: int,
+                    known_T: np.ndarray | None) -> FrameResult:
+        timings = {}
+        t = time.perf_counter()
+        tracks = self.tracker.track(gray)
+        timings['track'] = (time.perf_counter() - t) * 1e3
+        px = self.camera.undistort(tracks.px)
+        res = FrameResult(stamp_ns, TrackingState.INITIALISING, n_tracks=len(tracks),
+                          timings_ms=timings, track_ids=tracks.ids, track_px=tracks.px)
+        ref = self._ref
+        too_old = ref is not None and self.frame_index - ref.frame_index > \
+            self.cfg.bootstrap_max_frames
+        n_common = 0 if ref is None else len(np.intersect1d(ref.ids, tracks.ids))
+        if ref is None or too_old or n_common < self.cfg.bootstrap_min_inliers:
+            if len(tracks) >= self.cfg.bootstrap_min_inliers:
+                self._ref = _Reference(stamp_ns, self.frame_index, tracks.ids.copy(),
+                                       px.copy(), known_T)
+                res.message = 'bootstrap: new reference frame'
+            else:
+                res.message = f'bootstrap: only {len(tracks)} features'
+            return res
+
+        t = time.perf_counter()
+        if ref.T_world_cam is not None and known_T is not None:
+            boot = self.bootstrapper.from_known_poses(
+                geo.invert_T(ref.T_world_cam), geo.invert_T(known_T),
+                ref.ids, ref.px_ideal, tracks.ids, px)
+            T_world_ref, T_world_cur = ref.T_world_cam, known_T
+            X_world = getattr(boot, 'X_world', None)
+        else:
+            baseline = None
+            if self._anchor_speed is not None and self._anchor_speed > 0:
+                # carry the scale over a re-bootstrap: distance = speed * elapsed time
+                baseline = self._anchor_speed * (stamp_ns - ref.stamp_ns) * 1e-9
+            boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
+                                              baseline=baseline)
+            if boot.ok:
+                T_world_ref = self._anchor_T_world_cam
+                T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
+                X_world = geo.transform_points(T_world_ref, boot.X_ref)
+        timings['bootstrap'] = (time.perf_counter() - t) * 1e3
+        if not boot.ok:
+            res.message = f'bootstrap refused: {boot.reason}'
+            return res
+
+        # ---- start tracking (METHOD.md sec. 1 step 2): pose of the second frame,
+        # velocities from the difference of the two poses
+        self.map.add(boot.point_ids, X_world, self.frame_index)
+        dt = max((stamp_ns - ref.stamp_ns) * 1e-9, 1e-6)
+        v_world = (T_world_cur[:3, 3] - T_world_ref[:3, 3]) / dt
+        R_rel = T_world_ref[:3, :3].T @ T_world_cur[:3, :3]
+        w_cam = geo.quat_to_rotvec(geo.matrix_to_quat(R_rel)) / dt
+        c = self.cfg
+        self.ekf.initialise(T_world_cur, v_world, w_cam, c.init_pose_sigma,
+                            c.init_velocity_sigma, c.init_angular_velocity_sigma)
+        self.state = TrackingState.TRACKING
+        self._failed_frames = 0
+        self._T_world_cam_at = {ref.frame_index: T_world_ref,
+                                self.frame_index: T_world_cur}
+        # tracks without a point become triangulation candidates, from the reference
+        # frame when they were there already (wider baseline), else from now
+        ref_row = {int(i): k for k, i in enumerate(ref.ids)}
+        has_point = self.map.contains(tracks.ids)
+        for k in np.flatnonzero(~has_point):
+            tid = int(tracks.ids[k])
+            if tid in ref_row:
+                self._add_candidate(tid, ref.frame_index, ref.px_ideal[ref_row[tid]],
+                                    T_world_ref)
+            else:
+                self._add_candidate(tid, self.frame_index, px[k], T_world_cur)
+        res.bootstrapped = True
+        res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
+                       f'{boot.median_parallax_deg:.1f} deg')
+        self._fill_output(res, tracks, has_point, has_point)
+        return res
+
+    # ------------------------------------------------------------------ tracking
+    def _track(self, gray: np.ndarray, stamp_ns: int) -> FrameResult:
+        c = self.cfg
+        timings = {}
+        dt = (stamp_ns - self._last_stamp_ns) * 1e-9
+        if not dt > 0:
+            dt = c.default_dt_s
+
+        t = time.perf_counter()
+        self.ekf.predict(dt, c.accel_sigma, c.angular_accel_sigma, c.fading_memory)
+        # predicted landmark pixels = the KLT initial guess (active search, Davison 2003)
+        prev_ids = self._prev_ids
+        mask, X_prev = self.map.lookup(prev_ids)
+        predicted = None
+        if np.any(mask):
+            px_pred, front, _ = self.ekf.observe(X_prev, with_jacobian=False)
+            ok = front & np.all(np.isfinite(px_pred), axis=1)
+            predicted = (prev_ids[mask][ok], self.camera.distort(px_pred[ok]))
+        timings['predict'] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        tracks = self.tracker.track(gray, predicted)
+        px = self.camera.undistort(tracks.px)
+        timings['track'] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        has_point, X = self.map.lookup(tracks.ids)
+        rows = np.flatnonzero(has_point)
+        if len(rows) > c.max_update_points:
+            keep = np.sort(self.rng.choice(len(rows), c.max_update_points, replace=False))
+            rows, X = rows[keep], X[keep]
+        res = FrameResult(stamp_ns, TrackingState.TRACKING, n_tracks=len(tracks),
+                          n_matches=len(rows), timings_ms=timings)
+        inlier_rows = np.zeros(0, np.int64)
+        try:
+            if c.estimator == 'epnp':
+                inlier_rows = rows[self._epnp_update(px[rows], X, tracks.ids[rows], dt)]
+            else:
+                out = robust_update(
+                    self.ekf, px[rows], X, c.pixel_sigma_px, self.rng,
+                    one_point=c.one_point_ransac, inlier_px=c.ransac_inlier_px,
+                    probability=c.ransac_probability,
+                    max_hypotheses=c.ransac_max_hypotheses,
+                    gate_probability=c.gate_probability,
+                    iterations=c.iekf_iterations if c.estimator == 'iekf' else 1)
+                inlier_rows = rows[out.inliers]
+                if len(rows):
+                    culled = self.map.record_observations(
+                        tracks.ids[rows], out.inliers, self.frame_index)
+                    self._banned.update(int(i) for i in culled)
+        except (FilterError, np.linalg.LinAlgError) as exc:
+            self.reset(f'filter failure: {exc}')
+            res.state, res.message = self.state, f'lost: {exc}'
+            return res
+        timings['update'] = (time.perf_counter() - t) * 1e3
+        res.n_inliers = len(inlier_rows)
+
+        # ---- tracking quality
+        pos_sigma = float(np.sqrt(np.max(np.diag(self.ekf.P)[POS])))
+        if res.n_inliers < c.min_tracking_inliers:
+            self._failed_frames += 1
+            res.message = f'only {res.n_inliers} inliers'
+        else:
+            self._failed_frames = 0
+        if self._failed_frames >= c.max_failed_frames or pos_sigma > c.max_position_sigma_m:
+            why = res.message or f'position sigma {pos_sigma:.2f} m'
+            self.reset(f'tracking lost ({why})')
+            res.state, res.message = self.state, f'lost: {why}'
+            return res
+
+        # ---- map growth
+        t = time.perf_counter()
+        T_world_cam = self.ekf.T_world_cam
+        self._T_world_cam_at[self.frame_index] = T_world_cam
+        res.n_new_points = self._grow_map(tracks, px, has_point, T_world_cam)
+        timings['map'] = (time.perf_counter() - t) * 1e3
+
+        inlier_mask = np.zeros(len(tracks), bool)
+        inlier_mask[inlier_rows] = True
+        res.ok = self._failed_frames == 0
+        self._fill_output(res, tracks, has_point, inlier_mask)
+        return res
+
+    def _epnp_update(self, z: np.ndarray, X: np.ndarray, ids: np.ndarray,
+                     dt: float) -> np.ndarray:
+        """Baseline: overwrite the pose with per-frame EPnP+LM (velocity by difference).
+
+        Returns the (n,) inlier mask of the matches."""
+        pnp = solve_epnp(z, X, self.camera.K, self.cfg.pixel_sigma_px,
+                         self.cfg.ransac_inlier_px)
+        if not pnp.ok:
+            return np.zeros(len(z), bool)
+        prev = self._T_world_cam_at.get(self.frame_index - 1)
+        x = self.ekf.x
+        if prev is not None:
+            x[VEL] = (pnp.T_world_cam[:3, 3] - prev[:3, 3]) / dt
+        x[POS] = pnp.T_world_cam[:3, 3]
+        x[QUAT] = geo.matrix_to_quat(pnp.T_world_cam[:3, :3])
+        P = self.ekf.P
+        P[:, :7] = 0.0
+        P[:7, :] = 0.0
+        P[POS, POS] = pnp.pose_cov[:3, :3]
+        Jq = 0.5 * geo.quat_right_matrix(x[QUAT])[:, 1:]
+        P[QUAT, QUAT] = Jq @ pnp.pose_cov[3:, 3:] @ Jq.T
+        P[POS, QUAT] = pnp.pose_cov[:3, 3:] @ Jq.T
+        P[QUAT, POS] = P[POS, QUAT].T
+        self._banned.update(int(i) for i in self.map.record_observations(
+            ids, pnp.inliers, self.frame_index))
+        return pnp.inliers
+
+    # ------------------------------------------------------------------ map growth
+    def _add_candidate(self, tid: int, frame_index: int, px_ideal: np.ndarray,
+                       T_world_cam: np.ndarray) -> None:
+        self._cand_frame[tid] = frame_index
+        self._cand_px[tid] = np.asarray(px_ideal, float)
+        self._cand_bearing[tid] = T_world_cam[:3, :3] @ self.camera.unproject(px_ideal)[0]
+
+    def _grow_map(self, tracks: Tracks, px: np.ndarray, has_point: np.ndarray,
+                  T_world_cam: np.ndarray) -> int:
+        """Triangulate candidate tracks whose rays now differ by enough parallax."""
+        c = self.cfg
+        alive = set(int(i) for i in tracks.ids)
+        for tid in [t for t in self._cand_frame if t not in alive]:
+            self._drop_candidate(tid)
+        new_rows, cand_rows = [], []
+        for k in np.flatnonzero(~has_point):
+            tid = int(tracks.ids[k])
+            if tid in self._banned:
+                continue
+            if tid not in self._cand_frame:
+                self._add_candidate(tid, self.frame_index, px[k], T_world_cam)
+            elif self._cand_frame[tid] != self.frame_index:
+                cand_rows.append(k)
+        n_added = 0
+        if cand_rows:
+            cand_rows = np.array(cand_rows)
+            ids = tracks.ids[cand_rows]
+            bearings_now = self.camera.unproject(px[cand_rows]) @ T_world_cam[:3, :3].T
+            bearings_then = np.array([self._cand_bearing[int(i)] for i in ids])
+            cos = np.clip(np.sum(bearings_now * bearings_then, axis=1), -1, 1)
+            parallax = np.degrees(np.arccos(cos))
+            ready = parallax >= c.triangulation_min_parallax_deg
+            frames = np.array([self._cand_frame[int(i)] for i in ids])
+            T_cam_world_now = geo.invert_T(T_world_cam)
+            for f in np.unique(frames[ready]):
+                sel = ready & (frames == f)
+                sel_ids = ids[sel]
+                px_then = np.array([self._cand_px[int(i)] for i in sel_ids])
+                tri = triangulate_points(
+                    geo.invert_T(self._T_world_cam_at[int(f)]), T_cam_world_now,
+                    px_then, px[cand_rows[sel]], self.camera.K,
+                    c.triangulation_max_reproj_px, c.triangulation_min_parallax_deg)
+                good = tri.valid
+                self.map.add(sel_ids[good], tri.X_world[good], self.frame_index)
+                n_added += int(np.count_nonzero(good))
+                for tid in sel_ids[good]:
+                    self._drop_candidate(int(tid))
+                # a track that fails with a wide baseline is unreliable: stop trying
+                hopeless = ~good & (parallax[sel] > 3 * c.triangulation_min_parallax_deg)
+                for tid in sel_ids[hopeless]:
+                    self._drop_candidate(int(tid))
+                    self._banned.add(int(tid))
+        # forget poses no candidate refers to any more
+        needed = set(self._cand_frame.values()) | {self.frame_index, self.frame_index - 1}
+        for f in [f for f in self._T_world_cam_at if f not in needed]:
+            del self._T_world_cam_at[f]
+        return n_added
+
+    def _drop_candidate(self, tid: int) -> None:
+        self._cand_frame.pop(tid, None)
+        self._cand_px.pop(tid, None)
+        self._cand_bearing.pop(tid, None)
+
+    # ------------------------------------------------------------------ output
+    def _fill_output(self, res: FrameResult, tracks: Tracks, has_point: np.ndarray,
+                     inlier_mask: np.ndarray) -> None:
+        self._prev_ids = tracks.ids.copy()
+        res.track_ids, res.track_px = tracks.ids, tracks.px
+        res.track_has_point, res.track_inlier = has_point, inlier_mask
+        res.T_world_cam = self.ekf.T_world_cam
+        cov = self.ekf.pose_covariance()
+        twist, twist_cov = self.ekf.twist_cam()
+        # floor the variances: never publish a zero (infinitely confident) covariance
+        res.pose_cov = cov + np.eye(6) * MIN_VARIANCE
+        res.twist_cam, res.twist_cov = twist, twist_cov + np.eye(6) * MIN_VARIANCE
+        if res.bootstrapped:
+            res.ok = True
+        if not (np.all(np.isfinite(res.T_world_cam)) and np.all(np.isfinite(res.pose_cov))):
+            res.ok = False
+            res.message = 'non-finite estimate suppressed'
+
+    _prev_ids = np.zeros(0, np.int64)
