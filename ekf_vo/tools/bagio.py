@@ -1,0 +1,327 @@
+"""rosbag2 reading and writing with the pure-Python ``rosbags`` library (no ROS install needed).
+
+Messages are built from, and deserialized into, the ``rosbags`` typestore classes of ROS 2
+Jazzy (``Stores.ROS2_JAZZY``) and (de)serialized as CDR.  Bags are written with the MCAP
+storage plugin (rosbag2 format version 9) by default, the Jazzy default.
+
+Conventions: stamps are integer nanoseconds; ``T_world_cam`` is the 4x4 pose of the camera
+frame in the world frame (maps camera-frame points to world-frame points); quaternions are
+``*_xyzw`` (scalar last, ROS order).
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import cv2
+import numpy as np
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2.reader import Connection
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
+from scipy.spatial.transform import Rotation
+
+logger = logging.getLogger(__name__)
+
+IMAGE = 'sensor_msgs/msg/Image'
+COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+
+_TYPESTORE: Typestore | None = None
+
+
+def typestore() -> Typestore:
+    """Return the shared ROS 2 Jazzy typestore (created on first use)."""
+    global _TYPESTORE
+    if _TYPESTORE is None:
+        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+    return _TYPESTORE
+
+
+# --------------------------------------------------------------------------- message helpers
+def ns_to_time(stamp_ns: int) -> Any:
+    """builtin_interfaces/Time for an integer nanosecond stamp."""
+    ts = typestore()
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return ts.types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
+
+
+def time_to_ns(stamp: Any) -> int:
+    """Integer nanoseconds of a builtin_interfaces/Time (rosbags or rclpy object)."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def make_header(stamp_ns: int, frame_id: str) -> Any:
+    """std_msgs/Header with the given stamp and frame."""
+    return typestore().types['std_msgs/msg/Header'](stamp=ns_to_time(stamp_ns), frame_id=frame_id)
+
+
+def image_msg(image: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+    """sensor_msgs/Image from a uint8 array: (H, W) -> mono8, (H, W, 3) BGR -> bgr8."""
+    img = np.ascontiguousarray(image)
+    if img.dtype != np.uint8:
+        raise ValueError(f'image must be uint8, got {img.dtype}')
+    if img.ndim == 2:
+        encoding, channels = 'mono8', 1
+    elif img.ndim == 3 and img.shape[2] == 3:
+        encoding, channels = 'bgr8', 3
+    else:
+        raise ValueError(f'unsupported image shape {img.shape}')
+    height, width = img.shape[:2]
+    return typestore().types[IMAGE](
+        header=make_header(stamp_ns, frame_id), height=height, width=width, encoding=encoding,
+        is_bigendian=0, step=width * channels, data=img.reshape(-1))
+
+
+def compressed_msg(image: np.ndarray, stamp_ns: int, frame_id: str, fmt: str = 'jpeg',
+                   quality: int = 90) -> Any:
+    """sensor_msgs/CompressedImage (jpeg or png) from a mono8 / bgr8 uint8 array.
+
+    ``format`` follows compressed_image_transport: ``"mono8; jpeg compressed "`` for mono,
+    ``"bgr8; jpeg compressed bgr8"`` for colour.
+    """
+    img = np.ascontiguousarray(image)
+    encoding = 'mono8' if img.ndim == 2 else 'bgr8'
+    fmt = fmt.lower()
+    if fmt in ('jpeg', 'jpg'):
+        ok, buf = cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+        fmt = 'jpeg'
+    elif fmt == 'png':
+        ok, buf = cv2.imencode('.png', img, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    else:
+        raise ValueError(f'unsupported compressed format {fmt!r}')
+    if not ok:
+        raise RuntimeError(f'cv2.imencode failed for {fmt}')
+    target = 'bgr8' if encoding == 'bgr8' else ''
+    return typestore().types[COMPRESSED_IMAGE](
+        header=make_header(stamp_ns, frame_id), format=f'{encoding}; {fmt} compressed {target}',
+        data=np.asarray(buf, dtype=np.uint8).reshape(-1))
+
+
+def camera_info_msg(width: int, height: int, K: np.ndarray, D: Sequence[float],
+                    distortion_model: str, stamp_ns: int, frame_id: str) -> Any:
+    """sensor_msgs/CameraInfo with R = I and P = [K | 0]."""
+    ts = typestore()
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    P = np.hstack([K, np.zeros((3, 1))])
+    roi = ts.types['sensor_msgs/msg/RegionOfInterest'](
+        x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return ts.types[CAMERA_INFO](
+        header=make_header(stamp_ns, frame_id), height=int(height), width=int(width),
+        distortion_model=distortion_model, d=np.asarray(D, dtype=np.float64).reshape(-1),
+        k=K.reshape(-1).copy(), r=np.eye(3).reshape(-1), p=P.reshape(-1), binning_x=0,
+        binning_y=0, roi=roi)
+
+
+def pose_stamped_msg(T_world_cam: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+    """geometry_msgs/PoseStamped of a 4x4 pose (``frame_id`` is the parent/world frame)."""
+    ts = typestore()
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    q_xyzw = Rotation.from_matrix(T[:3, :3]).as_quat()
+    pos = ts.types['geometry_msgs/msg/Point'](x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]))
+    ori = ts.types['geometry_msgs/msg/Quaternion'](
+        x=float(q_xyzw[0]), y=float(q_xyzw[1]), z=float(q_xyzw[2]), w=float(q_xyzw[3]))
+    pose = ts.types['geometry_msgs/msg/Pose'](position=pos, orientation=ori)
+    return ts.types[POSE_STAMPED](header=make_header(stamp_ns, frame_id), pose=pose)
+
+
+def pose_to_matrix(pose: Any) -> np.ndarray:
+    """4x4 matrix of a geometry_msgs/Pose (rosbags object)."""
+    p, q = pose.position, pose.orientation
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    T[:3, 3] = [p.x, p.y, p.z]
+    return T
+
+
+def decode_image(msgtype: str, msg: Any) -> np.ndarray:
+    """uint8 array of a deserialized Image (mono8/bgr8/rgb8) or CompressedImage message."""
+    if msgtype == COMPRESSED_IMAGE:
+        buf = np.asarray(msg.data, dtype=np.uint8)
+        mono = msg.format.strip().startswith(('mono', '8UC1'))
+        img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if mono else cv2.IMREAD_COLOR)
+        if img is None:
+            raise ValueError(f'could not decode CompressedImage format {msg.format!r}')
+        return img
+    if msgtype != IMAGE:
+        raise ValueError(f'not an image message type: {msgtype}')
+    data = np.asarray(msg.data, dtype=np.uint8)
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if msg.encoding in ('mono8', '8UC1'):
+        return data.reshape(h, step)[:, :w].copy()
+    if msg.encoding in ('bgr8', 'rgb8', '8UC3'):
+        img = data.reshape(h, step)[:, :w * 3].reshape(h, w, 3).copy()
+        return img[:, :, ::-1].copy() if msg.encoding == 'rgb8' else img
+    raise ValueError(f'unsupported image encoding {msg.encoding!r}')
+
+
+# --------------------------------------------------------------------------- writing
+class BagWriter:
+    """Context manager writing a rosbag2 (MCAP storage by default) from numpy data.
+
+    Example::
+
+        with BagWriter('out_bag') as bag:
+            bag.add_image('/camera/image_raw', img, stamp_ns, 'camera_optical')
+    """
+
+    def __init__(self, path: str | Path, *, storage: str = 'mcap', version: int = 9,
+                 overwrite: bool = False) -> None:
+        """Prepare a writer for the new bag directory ``path``.
+
+        Args:
+            path: Bag directory to create (must not exist unless ``overwrite``).
+            storage: ``'mcap'`` (default) or ``'sqlite3'``.
+            version: rosbag2 metadata version (8 or 9).
+            overwrite: Delete an existing ``path`` first.
+        """
+        self.path = Path(path)
+        if self.path.exists() and overwrite:
+            shutil.rmtree(self.path)
+        plugin = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}[storage]
+        self._writer = Writer(self.path, version=version,  # type: ignore[arg-type]
+                              storage_plugin=plugin)
+        self._connections: dict[tuple[str, str], Connection] = {}
+        self._open = False
+        self.counts: dict[str, int] = {}
+
+    def open(self) -> BagWriter:
+        """Open the bag for writing (also done by ``with``)."""
+        if not self._open:
+            self._writer.open()
+            self._open = True
+        return self
+
+    def close(self) -> None:
+        """Finish the bag (writes metadata.yaml)."""
+        if self._open:
+            self._writer.close()
+            self._open = False
+            logger.info('wrote %s: %s', self.path, self.counts)
+
+    def __enter__(self) -> BagWriter:
+        return self.open()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def _connection(self, topic: str, msgtype: str) -> Connection:
+        key = (topic, msgtype)
+        conn = self._connections.get(key)
+        if conn is None:
+            if any(t == topic for t, _ in self._connections):
+                raise ValueError(f'topic {topic} already written with another type')
+            conn = self._writer.add_connection(topic, msgtype, typestore=typestore())
+            self._connections[key] = conn
+        return conn
+
+    def write_raw(self, topic: str, msgtype: str, data: bytes | memoryview, stamp_ns: int) -> None:
+        """Write already CDR-serialized ``data`` with log time ``stamp_ns``."""
+        self.open()
+        self._writer.write(self._connection(topic, msgtype), int(stamp_ns), data)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def write(self, topic: str, msgtype: str, msg: Any, stamp_ns: int) -> None:
+        """Serialize a typestore message object and write it with log time ``stamp_ns``."""
+        self.write_raw(topic, msgtype, typestore().serialize_cdr(msg, msgtype), stamp_ns)
+
+    def add_image(self, topic: str, image: np.ndarray, stamp_ns: int, frame_id: str) -> None:
+        """sensor_msgs/Image: (H, W) uint8 -> mono8, (H, W, 3) BGR uint8 -> bgr8."""
+        self.write(topic, IMAGE, image_msg(image, stamp_ns, frame_id), stamp_ns)
+
+    def add_compressed(self, topic: str, image: np.ndarray, stamp_ns: int, frame_id: str,
+                       fmt: str = 'jpeg', quality: int = 90) -> None:
+        """sensor_msgs/CompressedImage (``fmt`` 'jpeg' or 'png')."""
+        msg = compressed_msg(image, stamp_ns, frame_id, fmt, quality)
+        self.write(topic, COMPRESSED_IMAGE, msg, stamp_ns)
+
+    def add_camera_info(self, topic: str, width: int, height: int, K: np.ndarray,
+                        D: Sequence[float], distortion_model: str, stamp_ns: int,
+                        frame_id: str) -> None:
+        """sensor_msgs/CameraInfo with R = I, P = [K | 0]."""
+        msg = camera_info_msg(width, height, K, D, distortion_model, stamp_ns, frame_id)
+        self.write(topic, CAMERA_INFO, msg, stamp_ns)
+
+    def add_pose(self, topic: str, T_world_cam: np.ndarray, stamp_ns: int, frame_id: str) -> None:
+        """geometry_msgs/PoseStamped of ``T_world_cam``; ``frame_id`` is the world frame."""
+        msg = pose_stamped_msg(T_world_cam, stamp_ns, frame_id)
+        self.write(topic, POSE_STAMPED, msg, stamp_ns)
+
+
+# --------------------------------------------------------------------------- reading
+def _register_unknown(connections: Iterable[Connection]) -> None:
+    """Add message types found in the bag but missing from the Jazzy typestore."""
+    ts = typestore()
+    for conn in connections:
+        if conn.msgtype in ts.types or not conn.msgdef.data:
+            continue
+        try:
+            ts.register(get_types_from_msg(conn.msgdef.data, conn.msgtype))
+        except Exception as exc:  # noqa: BLE001 - IDL or broken definitions: skip, warn
+            logger.warning('cannot register %s from bag definition: %s', conn.msgtype, exc)
+
+
+def bag_topics(path: str | Path) -> dict[str, str]:
+    """Map topic -> message type of a rosbag2 directory."""
+    with Reader(Path(path)) as reader:
+        return {c.topic: c.msgtype for c in reader.connections}
+
+
+def read_raw(path: str | Path, topics: Iterable[str] | None = None
+             ) -> Iterator[tuple[str, str, int, bytes]]:
+    """Yield ``(topic, msgtype, stamp_ns, cdr_bytes)`` in log-time order."""
+    wanted = set(topics) if topics is not None else None
+    with Reader(Path(path)) as reader:
+        conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+        if not conns:
+            return
+        for conn, stamp_ns, raw in reader.messages(connections=conns):
+            yield conn.topic, conn.msgtype, int(stamp_ns), bytes(raw)
+
+
+def iter_bag(path: str | Path, topics: Iterable[str] | None = None
+             ) -> Iterator[tuple[str, str, int, Any]]:
+    """Yield ``(topic, msgtype, stamp_ns, msg)`` in log-time order, msg deserialized
+    into rosbags typestore classes; ``topics=None`` reads all topics."""
+    ts = typestore()
+    wanted = set(topics) if topics is not None else None
+    with Reader(Path(path)) as reader:
+        conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+        if not conns:
+            return
+        _register_unknown(conns)
+        for conn, stamp_ns, raw in reader.messages(connections=conns):
+            yield conn.topic, conn.msgtype, int(stamp_ns), ts.deserialize_cdr(raw, conn.msgtype)
+
+
+def read_ground_truth(path: str | Path, topic: str = '/ground_truth/pose'
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth poses of a bag: ``(stamps_ns (N,) int64, T_world_cam (N, 4, 4))``.
+
+    Stamps are the message header stamps.  Accepts PoseStamped, Odometry or TransformStamped.
+    """
+    stamps: list[int] = []
+    poses: list[np.ndarray] = []
+    for _, msgtype, _, msg in iter_bag(path, [topic]):
+        if msgtype == POSE_STAMPED:
+            T = pose_to_matrix(msg.pose)
+        elif msgtype == 'nav_msgs/msg/Odometry':
+            T = pose_to_matrix(msg.pose.pose)
+        elif msgtype == 'geometry_msgs/msg/TransformStamped':
+            tr, q = msg.transform.translation, msg.transform.rotation
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+            T[:3, 3] = [tr.x, tr.y, tr.z]
+        else:
+            raise ValueError(f'{topic}: unsupported ground-truth type {msgtype}')
+        stamps.append(time_to_ns(msg.header.stamp))
+        poses.append(T)
+    if not poses:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))
+    return np.asarray(stamps, dtype=np.int64), np.stack(poses)
