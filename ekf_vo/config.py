@@ -57,6 +57,9 @@ class VoConfig:
     klt_fb_max_px: float = param(
         1.0, 'Forward-backward KLT check: drop tracks whose round trip misses by more.',
         'px', 0.05, 20.0, group='front end')
+    clahe_clip_limit: float = param(
+        0.0, 'CLAHE contrast limit applied before detection and tracking (0 disables); '
+        'helps dark or low-contrast video.', '', 0.0, 40.0, group='front end')
     redetect_ratio: float = param(
         0.8, 'Detect new corners when fewer than this fraction of max_features survive.',
         '', 0.0, 1.0, group='front end')
@@ -86,10 +89,10 @@ class VoConfig:
     pixel_sigma_px: float = param(
         1.0, 'Standard deviation of a feature measurement.', 'px', 0.01, 50.0, group='ekf')
     accel_sigma: float = param(
-        2.0, 'Linear acceleration impulse noise (process noise, white, per sqrt(s)).',
+        5.0, 'Linear acceleration impulse std: velocity noise a*dt per step (METHOD.md 1).',
         'm/s^2', 1e-6, 1e4, group='ekf')
     angular_accel_sigma: float = param(
-        2.0, 'Angular acceleration impulse noise (process noise).', 'rad/s^2', 1e-6, 1e4,
+        5.0, 'Angular acceleration impulse std: angular velocity noise alpha*dt per step.', 'rad/s^2', 1e-6, 1e4,
         group='ekf')
     init_velocity_sigma: float = param(
         0.5, 'Initial standard deviation of the linear velocity.', 'm/s', 1e-6, 1e4,

@@ -70,6 +70,8 @@ def run_sequence(name: str, overrides: dict | None = None, gt_bootstrap: bool | 
             'ate_se3_rmse': ev.ate_se3_rmse, 'path_length': ev.path_length_gt_m,
             'rpe_trans_rmse': ev.rpe_trans_rmse, 'rpe_rot_rmse_deg': ev.rpe_rot_rmse_deg,
             'rot_err_mean_deg': ev.rot_err_mean_deg, 'rot_err_max_deg': ev.rot_err_max_deg,
+            'rot_drift_mean_deg': ev.rot_err_origin_mean_deg,
+            'rot_drift_max_deg': ev.rot_err_origin_max_deg,
             'scale': ev.sim3_scale, 'n_resets': vo.n_resets,
             'messages': [r.message for r in results if r.message][:20], 'eval': ev,
             'est_stamps': stamps, 'est_T': poses}
@@ -91,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
     r = run_sequence(args.sequence, overrides)
     for key in ('sequence', 'estimator', 'frames', 'frames_tracked', 'pct_tracked', 'fps',
                 'ate_sim3_rmse', 'ate_pct_path', 'path_length', 'rpe_trans_rmse',
-                'rpe_rot_rmse_deg', 'rot_err_mean_deg', 'rot_err_max_deg', 'scale',
+                'rpe_rot_rmse_deg', 'rot_err_mean_deg', 'rot_err_max_deg',
+                'rot_drift_mean_deg', 'rot_drift_max_deg', 'scale',
                 'n_resets', 'stage_ms', 'messages'):
         print(f'{key:>18}: {r[key]}')
     return 0

@@ -1,0 +1,413 @@
+"""Two-view bootstrap of the map: essential matrix, relative pose, first triangulation.
+
+Step 1 of the hybrid pipeline (METHOD.md sec. 1): from two frames at the start of the
+sequence, estimate the epipolar geometry, recover the relative pose and triangulate the
+first map. Monocular scale is arbitrary: the translation is scaled to
+`bootstrap_baseline_m` (or the `baseline` argument). `from_known_poses` is the paper's
+ground-truth bootstrap (the first two true poses fix the scale; only triangulation).
+
+Essential matrix by Nister's five-point algorithm inside RANSAC (cv2.findEssentialMat),
+decomposition + cheirality vote by cv2.recoverPose (H&Z sec. 9.6.2). A pair is refused,
+with a reason, when
+
+- too few tracks are common to both frames, or their median displacement is tiny (the
+  rays cannot have parallax: translational flow is about f * parallax, so a median flow
+  below 0.5 f tan(bootstrap_min_parallax_deg) px cannot reach the required parallax);
+- RANSAC finds no essential matrix;
+- the motion is (close to) a pure rotation or the scene is too far away: the homography
+  H = K R K^-1 explains the correspondences as well as E does (model selection in the
+  spirit of ORB-SLAM, Mur-Artal et al., IEEE T-RO 2015, sec. IV) AND the median
+  parallax is below bootstrap_min_parallax_deg. Under pure rotation E is undefined (any t
+  fits), so its "pose" would be noise;
+- the median parallax is below bootstrap_min_parallax_deg (depths poorly constrained);
+- fewer than bootstrap_min_inliers points triangulate validly.
+
+Pixels are IDEAL (undistorted) coordinates of the pinhole K; the caller undistorts.
+Frames: `T_cur_ref` maps points of the reference camera frame into the current camera
+frame, X_cur = R_cur_ref X_ref + t_cur_ref. For `try_pair` the world frame IS the
+reference camera frame (X_world == X_ref).
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ekf_vo.config import VoConfig
+from ekf_vo.core.triangulation import TriangulationResult, triangulate_points
+
+logger = logging.getLogger(__name__)
+
+#: RANSAC confidence of the essential matrix and homography fits.
+_RANSAC_PROB = 0.999
+#: Homography/essential inlier ratio above which H "explains the motion as well as E".
+#: Measured on synthetic 1 px noise scenes: pure rotation gives 0.8-1.0 (E over-fits the
+#: noise there), general motion with depth variation 0.2-0.3.
+_H_OVER_E_RATIO = 0.7
+#: Homography RANSAC threshold in multiples of the essential one, chosen so that both
+#: models keep the same fraction of true inliers: the E error (point to epipolar line,
+#: Sampson) is 1-D with std sigma, the H forward transfer error is 2-D and carries the
+#: noise of both images (std sqrt(2) sigma per axis, Rayleigh norm). P(|N(0,1)| < 1) =
+#: 0.683 = 1 - exp(-k^2 / 4) gives k = 2.13.
+_H_THRESHOLD_SCALE = 2.13
+#: Inlier gate of the refined epipolar model, in multiples of bootstrap_ransac_px: the
+#: RANSAC threshold is tuned to pick a clean sample set, the gate keeps every point
+#: compatible with the noise (3 sigma when the threshold is about one sigma).
+_GATE_SCALE = 3.0
+#: Huber width of the polish, in multiples of bootstrap_ransac_px (about 2 sigma).
+_HUBER_SCALE = 2.0
+#: Fewest correspondences findEssentialMat accepts (five-point algorithm).
+_MIN_POINTS_ESSENTIAL = 5
+
+
+@dataclass
+class BootstrapResult:
+    """Outcome of a bootstrap attempt.
+
+    Attributes:
+        ok: the pair was accepted.
+        reason: 'ok' or why the pair was refused.
+        R_cur_ref: (3, 3) rotation reference camera -> current camera.
+        t_cur_ref: (3,) translation, |t| = the baseline (map units).
+        T_cur_ref: (4, 4) [R_cur_ref | t_cur_ref].
+        point_ids: (M,) int64 track ids of the valid triangulated points.
+        X_ref: (M, 3) those points in the reference camera frame (map units).
+        X_world: (M, 3) those points in the world frame (== X_ref for `try_pair`).
+        inlier_ids: (K,) int64 ids of the correspondences within the inlier gate of the
+            refined epipolar geometry (superset of point_ids); for
+            `from_known_poses` the common ids.
+        median_parallax_deg: median ray angle over the inliers that triangulate in front
+            of both cameras with a small reprojection error (before the per-point
+            parallax cut).
+        n_inliers: M, the number of valid triangulated points.
+        n_common: tracks common to both frames.
+        median_flow_px: median displacement of the common tracks.
+        h_over_e: homography inliers / essential inliers (NaN when not computed).
+        triangulation: the per-point result over the common tracks (or None).
+    """
+
+    ok: bool
+    reason: str
+    R_cur_ref: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t_cur_ref: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    T_cur_ref: np.ndarray = field(default_factory=lambda: np.eye(4))
+    point_ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    X_ref: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    X_world: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    inlier_ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    median_parallax_deg: float = 0.0
+    n_inliers: int = 0
+    n_common: int = 0
+    median_flow_px: float = 0.0
+    h_over_e: float = float('nan')
+    triangulation: TriangulationResult | None = None
+
+
+def _se3(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, np.float64).reshape(3)
+    return T
+
+
+def _inverse_se3(T: np.ndarray) -> np.ndarray:
+    R = T[:3, :3]
+    return _se3(R.T, -R.T @ T[:3, 3])
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def sampson_px(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
+               K: np.ndarray) -> np.ndarray:
+    """Signed Sampson distance (pixels) of correspondences to the epipolar geometry.
+
+    F = K^-T [t]x R K^-1 (H&Z eq. 9.18), r = x2^T F x1 / sqrt((F x1)_1^2 + (F x1)_2^2 +
+    (F^T x2)_1^2 + (F^T x2)_2^2) (H&Z eq. 11.9): the first-order geometric distance of
+    (x1, x2) to the nearest exact correspondence. Shapes: p_ref, p_cur (N, 2) -> (N,).
+    """
+    K_inv = np.linalg.inv(K)
+    F = K_inv.T @ _skew(t) @ R @ K_inv
+    x1 = np.c_[p_ref, np.ones(p_ref.shape[0])]
+    x2 = np.c_[p_cur, np.ones(p_cur.shape[0])]
+    Fx1 = x1 @ F.T
+    Ftx2 = x2 @ F
+    num = np.einsum('ij,ij->i', x2, Fx1)
+    den = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
+    return num / np.maximum(den, 1e-300)
+
+
+def _tangent_basis(t: np.ndarray) -> np.ndarray:
+    """(3, 2) orthonormal basis of the plane orthogonal to the unit vector t."""
+    a = np.eye(3)[int(np.argmin(np.abs(t)))]
+    b1 = np.cross(t, a)
+    b1 /= np.linalg.norm(b1)
+    return np.c_[b1, np.cross(t, b1)]
+
+
+def refine_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
+                         p_cur: np.ndarray, K: np.ndarray, gate_px: float,
+                         huber_px: float, iterations: int = 10
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton polish of (R, t) on the Sampson distance, robust (Huber, IRLS).
+
+    RANSAC returns the model of a minimal five-point sample, accurate only to the noise of
+    those five points; a least-squares polish on all inliers is the standard last step
+    (H&Z sec. 11.6 / "gold standard" in spirit, with the Sampson approximation). The
+    5 dof are a rotation increment R <- R exp([w]x) and a move of t on the unit sphere,
+    t <- normalise(t + B a) with B a tangent basis. Only correspondences within `gate_px`
+    of the current model enter each iteration; Huber weights with `huber_px` keep
+    moderate outliers from pulling the model. The Jacobian is numerical (central
+    differences, 5 columns): cheap for a few hundred points and free of algebra slips.
+
+    Returns the refined (R (3, 3), t (3,) unit).
+    """
+    R = np.asarray(R, np.float64)
+    t = np.asarray(t, np.float64).reshape(3)
+    t = t / np.linalg.norm(t)
+    h = 1e-6
+
+    def apply(R0: np.ndarray, t0: np.ndarray, B: np.ndarray, d: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+        R1 = R0 @ cv2.Rodrigues(d[:3].reshape(3, 1))[0]
+        t1 = t0 + B @ d[3:]
+        return R1, t1 / np.linalg.norm(t1)
+
+    for _ in range(iterations):
+        r = sampson_px(R, t, p_ref, p_cur, K)
+        sel = np.abs(r) < gate_px
+        if int(sel.sum()) < _MIN_POINTS_ESSENTIAL * 2:
+            break
+        pr, pc, r = p_ref[sel], p_cur[sel], r[sel]
+        B = _tangent_basis(t)
+        J = np.empty((r.shape[0], 5))
+        for k in range(5):          # 5 parameters, not a per-feature loop
+            d = np.zeros(5)
+            d[k] = h
+            Rp, tp = apply(R, t, B, d)
+            Rm, tm = apply(R, t, B, -d)
+            J[:, k] = (sampson_px(Rp, tp, pr, pc, K) - sampson_px(Rm, tm, pr, pc, K)) / (2 * h)
+        a = np.abs(r)
+        w = np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-300))
+        JtW = J.T * w
+        try:
+            delta = np.linalg.solve(JtW @ J + 1e-9 * np.eye(5), -JtW @ r)
+        except np.linalg.LinAlgError:
+            break
+        R, t = apply(R, t, B, delta)
+        if np.linalg.norm(delta) < 1e-10:
+            break
+    return R, t
+
+
+def common_tracks(ids_ref: np.ndarray, px_ref: np.ndarray, ids_cur: np.ndarray,
+                  px_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intersect two id-labelled observation sets.
+
+    Returns (ids (C,) int64 ascending, px_ref (C, 2), px_cur (C, 2)); rows with a
+    non-finite pixel are dropped. Raises ValueError on mismatched shapes or duplicate ids.
+    """
+    ids_ref = np.asarray(ids_ref, np.int64).reshape(-1)
+    ids_cur = np.asarray(ids_cur, np.int64).reshape(-1)
+    px_ref = np.asarray(px_ref, np.float64).reshape(-1, 2)
+    px_cur = np.asarray(px_cur, np.float64).reshape(-1, 2)
+    if ids_ref.shape[0] != px_ref.shape[0] or ids_cur.shape[0] != px_cur.shape[0]:
+        raise ValueError('ids and px must have the same length')
+    if np.unique(ids_ref).size != ids_ref.size or np.unique(ids_cur).size != ids_cur.size:
+        raise ValueError('duplicate track ids')
+    ids, i_ref, i_cur = np.intersect1d(ids_ref, ids_cur, assume_unique=True,
+                                       return_indices=True)
+    p_ref, p_cur = px_ref[i_ref], px_cur[i_cur]
+    finite = np.isfinite(p_ref).all(axis=1) & np.isfinite(p_cur).all(axis=1)
+    return ids[finite], p_ref[finite], p_cur[finite]
+
+
+class TwoViewBootstrap:
+    """Essential-matrix bootstrap of the first map from two frames.
+
+    Args:
+        cfg: uses bootstrap_min_parallax_deg, bootstrap_min_inliers, bootstrap_ransac_px,
+            bootstrap_baseline_m, triangulation_max_reproj_px,
+            triangulation_min_parallax_deg.
+        K: (3, 3) pinhole intrinsics of the IDEAL (undistorted) pixel coordinates.
+    """
+
+    def __init__(self, cfg: VoConfig, K: np.ndarray) -> None:
+        K = np.asarray(K, np.float64)
+        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f'K must be a finite 3x3 pinhole matrix, got {K!r}')
+        self.cfg = cfg
+        self.K = K
+        f = 0.5 * (K[0, 0] + K[1, 1])
+        # Translational flow of a point is about f * parallax (small angles); half of it
+        # is a safe lower bound below which the parallax test cannot succeed.
+        self.min_flow_px = float(getattr(
+            cfg, 'bootstrap_min_flow_px',
+            0.5 * f * math.tan(math.radians(cfg.bootstrap_min_parallax_deg))))
+
+    # ------------------------------------------------------------------ public API
+
+    def try_pair(self, ids_ref: np.ndarray, px_ref: np.ndarray, ids_cur: np.ndarray,
+                 px_cur: np.ndarray, baseline: float | None = None) -> BootstrapResult:
+        """Attempt a bootstrap from a reference and a current frame.
+
+        Args:
+            ids_ref, px_ref: (N,) int64 track ids and (N, 2) IDEAL pixels, reference.
+            ids_cur, px_cur: (M,) int64 track ids and (M, 2) IDEAL pixels, current.
+            baseline: |t_cur_ref| to impose (map units); default bootstrap_baseline_m.
+
+        Returns:
+            BootstrapResult; `ok` False with a `reason` when the pair is refused.
+        """
+        cfg = self.cfg
+        baseline = float(cfg.bootstrap_baseline_m if baseline is None else baseline)
+        if not baseline > 0 or not math.isfinite(baseline):
+            raise ValueError(f'baseline must be positive and finite, got {baseline}')
+        ids, p_ref, p_cur = common_tracks(ids_ref, px_ref, ids_cur, px_cur)
+        n_common = int(ids.shape[0])
+        need = max(int(cfg.bootstrap_min_inliers), _MIN_POINTS_ESSENTIAL)
+        if n_common < need:
+            return self._refuse(f'too few common tracks ({n_common} < {need})',
+                                n_common=n_common)
+        flow = float(np.median(np.linalg.norm(p_cur - p_ref, axis=1)))
+        if flow < self.min_flow_px:
+            return self._refuse(f'insufficient parallax: median flow {flow:.2f} px < '
+                                f'{self.min_flow_px:.2f} px', n_common=n_common,
+                                median_flow_px=flow)
+
+        # (b) Essential matrix (Nister five-point + RANSAC) and relative pose.
+        thr = float(cfg.bootstrap_ransac_px)
+        E, mask_e = cv2.findEssentialMat(p_ref, p_cur, self.K, method=cv2.RANSAC,
+                                         prob=_RANSAC_PROB, threshold=thr)
+        if E is None or mask_e is None or E.shape[0] < 3:
+            return self._refuse('no essential matrix found', n_common=n_common,
+                                median_flow_px=flow)
+        E = E[:3]   # several stacked solutions may come back; RANSAC keeps the best first
+        mask_e = mask_e.reshape(-1).astype(bool)
+        n_e = int(mask_e.sum())
+        if n_e < 2 * _MIN_POINTS_ESSENTIAL:
+            # The count that matters (valid triangulated points) is checked after the
+            # polish, whose gate is wider than the RANSAC threshold.
+            return self._refuse(f'too few essential-matrix inliers ({n_e})',
+                                n_common=n_common, median_flow_px=flow)
+        # recoverPose: the decomposition (of four) with most points in front of both
+        # cameras; it returns x_cur = R x_ref + t with |t| = 1.
+        _, R, t, mask_p = cv2.recoverPose(E, p_ref, p_cur, self.K,
+                                          mask=(mask_e.astype(np.uint8) * 255))
+        t = t.reshape(3)
+        t = t / np.linalg.norm(t)
+        # Least-squares polish on all correspondences near the model (RANSAC's model
+        # comes from five points only); the refined model then re-selects the inliers
+        # with a gate of _GATE_SCALE thresholds, the triangulation checks decide the rest.
+        gate = _GATE_SCALE * thr
+        R, t = refine_relative_pose(R, t, p_ref, p_cur, self.K, gate_px=gate,
+                                    huber_px=_HUBER_SCALE * thr)
+        inl = np.abs(sampson_px(R, t, p_ref, p_cur, self.K)) < gate
+
+        # (c) Triangulate the inliers (unit baseline; the scale is applied at the end,
+        # all checks are scale-invariant).
+        T_ref = np.eye(4)
+        T_cur = _se3(R, t)
+        tri = triangulate_points(T_ref, T_cur, p_ref, p_cur, self.K,
+                                 cfg.triangulation_max_reproj_px,
+                                 cfg.triangulation_min_parallax_deg)
+        good_geom = inl & np.isfinite(tri.reproj_err_px) & \
+            (tri.reproj_err_px < cfg.triangulation_max_reproj_px)
+        med_par = float(np.median(tri.parallax_deg[good_geom])) if good_geom.any() else 0.0
+        valid = inl & tri.valid
+        n_valid = int(valid.sum())
+
+        # (d) Degeneracy: homography vs essential (pure rotation / planar at infinity).
+        h_over_e = self._homography_ratio(p_ref, p_cur, n_e)
+        common = dict(n_common=n_common, median_flow_px=flow, h_over_e=h_over_e,
+                      median_parallax_deg=med_par, n_inliers=n_valid, triangulation=tri)
+        min_par = float(cfg.bootstrap_min_parallax_deg)
+        if h_over_e >= _H_OVER_E_RATIO and med_par < min_par:
+            return self._refuse(
+                f'pure rotation / insufficient parallax: the homography explains '
+                f'{100 * h_over_e:.0f}% of the essential inliers and the median parallax '
+                f'is {med_par:.2f} deg < {min_par:.2f} deg', **common)
+        if med_par < min_par:
+            return self._refuse(f'insufficient parallax: median {med_par:.2f} deg < '
+                                f'{min_par:.2f} deg', **common)
+        if n_valid < int(cfg.bootstrap_min_inliers):
+            return self._refuse(f'too few valid triangulated points ({n_valid} < '
+                                f'{cfg.bootstrap_min_inliers})', **common)
+
+        # (e) Fix the scale: |t| = baseline, the points scale with it.
+        t_s = t * baseline
+        X_ref = tri.X_world[valid] * baseline
+        logger.info('bootstrap ok: %d points, median parallax %.2f deg, H/E %.2f',
+                    n_valid, med_par, h_over_e)
+        return BootstrapResult(
+            ok=True, reason='ok', R_cur_ref=R, t_cur_ref=t_s, T_cur_ref=_se3(R, t_s),
+            point_ids=ids[valid], X_ref=X_ref, X_world=X_ref.copy(), inlier_ids=ids[inl],
+            **common)
+
+    def from_known_poses(self, T_ref_world: np.ndarray, T_cur_world: np.ndarray,
+                         ids_ref: np.ndarray, px_ref: np.ndarray, ids_cur: np.ndarray,
+                         px_cur: np.ndarray, min_points: int | None = None
+                         ) -> BootstrapResult:
+        """Triangulate the first map from two GIVEN poses (the paper's GT bootstrap).
+
+        Args:
+            T_ref_world, T_cur_world: (4, 4) world -> camera poses of the two frames.
+            ids_ref, px_ref, ids_cur, px_cur: as in `try_pair` (IDEAL pixels).
+            min_points: fewest valid points to accept (default bootstrap_min_inliers).
+
+        Returns:
+            BootstrapResult with X_world (world frame), X_ref (reference camera frame)
+            and T_cur_ref = T_cur_world T_ref_world^-1. No parallax refusal: the poses,
+            and so the scale, are known; points below the per-point parallax are simply
+            not triangulated.
+        """
+        cfg = self.cfg
+        T_ref_world = np.asarray(T_ref_world, np.float64)
+        T_cur_world = np.asarray(T_cur_world, np.float64)
+        need = int(cfg.bootstrap_min_inliers if min_points is None else min_points)
+        ids, p_ref, p_cur = common_tracks(ids_ref, px_ref, ids_cur, px_cur)
+        n_common = int(ids.shape[0])
+        T_cur_ref = T_cur_world @ _inverse_se3(T_ref_world)
+        if n_common < need:
+            return self._refuse(f'too few common tracks ({n_common} < {need})',
+                                n_common=n_common)
+        tri = triangulate_points(T_ref_world, T_cur_world, p_ref, p_cur, self.K,
+                                 cfg.triangulation_max_reproj_px,
+                                 cfg.triangulation_min_parallax_deg)
+        good_geom = np.isfinite(tri.reproj_err_px) & \
+            (tri.reproj_err_px < cfg.triangulation_max_reproj_px)
+        med_par = float(np.median(tri.parallax_deg[good_geom])) if good_geom.any() else 0.0
+        valid = tri.valid
+        n_valid = int(valid.sum())
+        common = dict(n_common=n_common,
+                      median_flow_px=float(np.median(np.linalg.norm(p_cur - p_ref, axis=1))),
+                      median_parallax_deg=med_par, n_inliers=n_valid, triangulation=tri,
+                      R_cur_ref=T_cur_ref[:3, :3].copy(), t_cur_ref=T_cur_ref[:3, 3].copy(),
+                      T_cur_ref=T_cur_ref, inlier_ids=ids)
+        if n_valid < need:
+            return self._refuse(f'too few valid triangulated points ({n_valid} < {need})',
+                                **common)
+        X_world = tri.X_world[valid]
+        X_ref = X_world @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
+        return BootstrapResult(ok=True, reason='ok', point_ids=ids[valid], X_ref=X_ref,
+                               X_world=X_world, **common)
+
+    # ------------------------------------------------------------------ internals
+
+    def _homography_ratio(self, p_ref: np.ndarray, p_cur: np.ndarray, n_e: int) -> float:
+        """Homography RANSAC inliers divided by essential-matrix inliers."""
+        thr = float(self.cfg.bootstrap_ransac_px) * _H_THRESHOLD_SCALE
+        H, mask_h = cv2.findHomography(p_ref, p_cur, cv2.RANSAC, thr,
+                                       confidence=_RANSAC_PROB)
+        if H is None or mask_h is None or n_e == 0:
+            return 0.0
+        return float(mask_h.sum()) / float(n_e)
+
+    @staticmethod
+    def _refuse(reason: str, **kwargs: object) -> BootstrapResult:
+        logger.debug('bootstrap refused: %s', reason)
+        return BootstrapResult(ok=False, reason=reason, **kwargs)

@@ -1,0 +1,484 @@
+"""Front end: bucketed Shi-Tomasi corners tracked by pyramidal KLT.
+
+Corners (Shi & Tomasi, "Good features to track", CVPR 1994) are detected per cell of a
+`grid_rows x grid_cols` grid so that they spread over the whole image (a pose from
+clustered points is badly conditioned), masked so that a new corner keeps
+`min_feature_distance_px` from every live track. They are followed from frame to frame by
+the pyramidal Lucas-Kanade tracker (Bouguet 2001, as in OpenCV), and every track must pass
+a forward-backward check (Kalal, Mikolajczyk & Matas, "Forward-backward error", ICPR 2010):
+track the point back from the new frame and drop it if it misses its start by more than
+`klt_fb_max_px`. New corners are detected only when the number of tracks falls below
+`redetect_ratio * max_features` (OpenCV `samples/python/lk_track.py` does the same on a
+fixed interval).
+
+An optional prior on the flow (`predicted`: where the EKF expects each track to land) is
+used as the KLT initial guess; tracks that fail with the prior are retried without it, so
+a bad prediction never costs a track that plain KLT would have kept.
+
+Conventions: pixel coordinates are RAW image pixels (distorted, origin at the centre of
+the top-left pixel, x right, y down). Track ids are int64, unique over the tracker's
+lifetime (never reused, not even after `reset()`), and every `Tracks` lists them in
+ascending order; the tracks detected in the current frame are the last `n_new` rows and
+have age 0.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Mapping
+
+import cv2
+import numpy as np
+
+from ekf_vo.config import VoConfig
+
+logger = logging.getLogger(__name__)
+
+#: Tracks closer than this to the image border are dropped: the KLT window would be
+#: mostly border replication there, and the point is about to leave the image anyway.
+_BORDER_MARGIN_PX = 2.0
+#: A frame (or a detection cell) whose grey-level standard deviation is below this is
+#: treated as featureless: on a black or constant image every "corner" is sensor noise.
+_MIN_CONTRAST_GREY = 2.0
+#: Smallest image side the tracker works on (a KLT window needs room).
+_MIN_IMAGE_SIDE = 16
+#: KLT stop criterion: 30 iterations or a step below 0.01 px (OpenCV sample values).
+_KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+#: Shi-Tomasi block size (pixels) of the structure tensor.
+_CORNER_BLOCK_SIZE = 3
+#: Each cell is asked for this many times its quota so that cells with spare corners can
+#: make up for textureless ones (sky, road, walls).
+_CELL_OVERSAMPLING = 2
+#: A second detection pass over the cells already at quota runs only when the first pass
+#: leaves more than this fraction of max_features undetected.
+_SECOND_PASS_FRACTION = 0.1
+
+
+@dataclass
+class Tracks:
+    """The tracks alive after one frame.
+
+    Attributes:
+        ids: (N,) int64, ascending, unique over the tracker's lifetime.
+        px: (N, 2) float64, raw image pixel coordinates (u, v) in the current frame.
+        age: (N,) int32, number of frames the track has been followed since its detection
+            (0 in the frame it was detected).
+        n_new: number of tracks detected in this frame (the last `n_new` rows).
+        n_lost: number of tracks of the previous frame that did not survive.
+    """
+
+    ids: np.ndarray
+    px: np.ndarray
+    age: np.ndarray
+    n_new: int = 0
+    n_lost: int = 0
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+    @staticmethod
+    def empty(n_lost: int = 0) -> 'Tracks':
+        """Zero tracks (featureless frame, first frame of a rejected sequence...)."""
+        return Tracks(np.empty(0, np.int64), np.empty((0, 2), np.float64),
+                      np.empty(0, np.int32), 0, int(n_lost))
+
+
+@dataclass
+class TrackerStats:
+    """Diagnostics of the last `FeatureTracker.track` call (times in milliseconds)."""
+
+    detect_ms: float = 0.0
+    track_ms: float = 0.0
+    total_ms: float = 0.0
+    n_tracked: int = 0
+    n_new: int = 0
+    n_lost: int = 0
+    n_klt_failed: int = 0
+    n_fb_rejected: int = 0
+    n_border_rejected: int = 0
+    n_predicted: int = 0
+    n_prediction_retried: int = 0
+    rejected_frame: str = ''
+
+
+class FeatureTracker:
+    """Bucketed Shi-Tomasi + forward-backward-checked pyramidal KLT.
+
+    Args:
+        cfg: uses max_features, grid_rows, grid_cols, min_feature_distance_px,
+            corner_quality, klt_window_px, klt_pyramid_levels, klt_fb_max_px,
+            redetect_ratio; optionally `clahe_clip_limit` (0 disables; not in VoConfig
+            yet, read with getattr).
+
+    Motion range: with a window of w px and L pyramid levels, KLT converges for flows of
+    roughly (w / 2) * 2**L px (defaults 21 px, 4 levels: ~160 px), enough for KITTI at
+    10 Hz (50-100 px near the borders) and hand-held 640x480 video at 30 Hz. A prior
+    (`predicted`) extends it further.
+    """
+
+    def __init__(self, cfg: VoConfig) -> None:
+        self.cfg = cfg
+        win = int(cfg.klt_window_px) | 1            # odd window: centred on the point
+        self._win = (win, win)
+        self._levels = int(cfg.klt_pyramid_levels)
+        self._fb_max = float(cfg.klt_fb_max_px)
+        self._max_features = int(cfg.max_features)
+        self._min_dist = float(cfg.min_feature_distance_px)
+        clip = float(getattr(cfg, 'clahe_clip_limit', 0.0))
+        # CLAHE is applied to EVERY frame or to none: KLT assumes brightness constancy,
+        # so equalising only the dark frames would break it between two frames.
+        self._clahe = cv2.createCLAHE(clipLimit=clip, tileGridSize=(8, 8)) if clip > 0 \
+            else None
+        self._next_id = 0
+        self._stats = TrackerStats()
+        self.reset()
+
+    # ------------------------------------------------------------------ public API
+
+    def reset(self) -> None:
+        """Forget all tracks and the previous frame; ids keep counting (never reused)."""
+        self._prev_gray: np.ndarray | None = None
+        self._prev_shape: tuple[int, int] | None = None
+        self._ids = np.empty(0, np.int64)
+        self._px = np.empty((0, 2), np.float32)
+        self._age = np.empty(0, np.int32)
+
+    @property
+    def stats(self) -> TrackerStats:
+        """Timings and counters of the last `track` call."""
+        return self._stats
+
+    @property
+    def next_id(self) -> int:
+        """The id the next detected corner will get."""
+        return self._next_id
+
+    def track(self, gray: np.ndarray,
+              predicted: tuple[np.ndarray, np.ndarray] | Mapping[int, object] | None = None
+              ) -> Tracks:
+        """Track the live corners into `gray` and top them up with new detections.
+
+        Args:
+            gray: (H, W) uint8 image (a 3-channel BGR image is converted to grey).
+            predicted: optional prior on where tracks land in `gray`, RAW pixels:
+                `(ids (M,) int, px (M, 2) float)` (vectorised, the fast path) or
+                `{id: (u, v)}` (converted with a Python loop). Unknown ids and
+                non-finite positions are ignored; tracks without a prediction start KLT
+                from their previous position.
+
+        Returns:
+            The live tracks in `gray` (see `Tracks`). A frame that is too small, empty,
+            featureless or too dark gives zero tracks (all previous tracks lost) and is
+            reported in `stats.rejected_frame`; it never raises on a valid uint8 image.
+        """
+        t_start = time.perf_counter()
+        stats = TrackerStats()
+        self._stats = stats
+        n_prev = int(self._ids.shape[0])
+
+        reason = self._check_frame(gray)
+        if not reason:
+            if gray.ndim == 3:
+                gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
+            gray = np.ascontiguousarray(gray)
+            if self._clahe is not None:
+                gray = self._clahe.apply(gray)
+            # Contrast is judged after the optional CLAHE: it is what KLT will see.
+            reason = self._check_contrast(gray)
+        if reason:
+            stats.rejected_frame = reason
+            stats.n_lost = n_prev
+            logger.debug('frame rejected: %s', reason)
+            self.reset()
+            stats.total_ms = (time.perf_counter() - t_start) * 1e3
+            return Tracks.empty(n_prev)
+
+        h, w = gray.shape
+        if self._prev_shape is not None and self._prev_shape != (h, w):
+            logger.warning('image size changed %s -> %s: tracks reset',
+                           self._prev_shape, (h, w))
+            self.reset()
+            stats.n_lost = n_prev
+            n_prev = 0
+
+        # (cv2.buildOpticalFlowPyramid cannot be reused here: the Python binding of
+        # calcOpticalFlowPyrLK accepts images only, so it builds the pyramids itself.)
+        if n_prev > 0 and self._prev_gray is not None:
+            t_track = time.perf_counter()
+            self._klt(gray, predicted, stats)
+            stats.track_ms = (time.perf_counter() - t_track) * 1e3
+
+        n_new = 0
+        t_detect = time.perf_counter()
+        n_live = int(self._ids.shape[0])
+        if n_live == 0 or n_live < self.cfg.redetect_ratio * self._max_features:
+            n_new = self._detect(gray)
+        stats.detect_ms = (time.perf_counter() - t_detect) * 1e3
+
+        self._prev_gray = gray
+        self._prev_shape = (h, w)
+        stats.n_tracked = int(self._ids.shape[0])
+        stats.n_new = n_new
+        stats.n_lost += n_prev - (stats.n_tracked - n_new)
+        stats.total_ms = (time.perf_counter() - t_start) * 1e3
+        return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(),
+                      n_new, stats.n_lost)
+
+    # ------------------------------------------------------------------ internals
+
+    @staticmethod
+    def _check_frame(gray: object) -> str:
+        """Empty string when `gray` can be tracked, else why not."""
+        if not isinstance(gray, np.ndarray):
+            return 'not a numpy array'
+        if gray.dtype != np.uint8:
+            return f'dtype {gray.dtype} is not uint8'
+        if gray.ndim not in (2, 3) or (gray.ndim == 3 and gray.shape[2] != 3):
+            return f'shape {gray.shape} is not HxW (or HxWx3)'
+        if min(gray.shape[:2]) < _MIN_IMAGE_SIDE:
+            return f'image {gray.shape[1]}x{gray.shape[0]} smaller than ' \
+                   f'{_MIN_IMAGE_SIDE}x{_MIN_IMAGE_SIDE}'
+        return ''
+
+    @staticmethod
+    def _check_contrast(gray: np.ndarray) -> str:
+        """Empty string unless the (H, W) uint8 frame is black, constant or nearly so."""
+        # A 4x subsampled view is enough to tell a black / constant frame, and cheap.
+        _, std = cv2.meanStdDev(np.ascontiguousarray(gray[::4, ::4]))
+        if float(std[0, 0]) < _MIN_CONTRAST_GREY:
+            return f'featureless frame (grey std {float(std[0, 0]):.2f})'
+        return ''
+
+    def _prior(self, predicted: object) -> tuple[np.ndarray, np.ndarray]:
+        """Initial KLT guesses (N, 2) float32 and which rows came from `predicted`."""
+        init = self._px.copy()
+        used = np.zeros(self._ids.shape[0], bool)
+        if predicted is None:
+            return init, used
+        if isinstance(predicted, Mapping):
+            if not predicted:
+                return init, used
+            p_ids = np.fromiter(predicted.keys(), np.int64, len(predicted))
+            p_px = np.asarray([np.asarray(v, np.float64).reshape(2)
+                               for v in predicted.values()], np.float64)
+        else:
+            p_ids = np.asarray(predicted[0], np.int64).reshape(-1)
+            p_px = np.asarray(predicted[1], np.float64).reshape(-1, 2)
+        if p_ids.shape[0] != p_px.shape[0]:
+            raise ValueError(f'predicted: {p_ids.shape[0]} ids but {p_px.shape[0]} '
+                             'positions')
+        if p_ids.size == 0 or self._ids.size == 0:
+            return init, used
+        # self._ids is ascending, so a binary search matches predictions to tracks.
+        pos = np.searchsorted(self._ids, p_ids)
+        pos_c = np.minimum(pos, self._ids.shape[0] - 1)
+        ok = (self._ids[pos_c] == p_ids) & np.isfinite(p_px).all(axis=1)
+        init[pos_c[ok]] = p_px[ok].astype(np.float32)
+        used[pos_c[ok]] = True
+        return init, used
+
+    def _lk_fb(self, gray: np.ndarray, p0: np.ndarray, init: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Forward KLT from `p0` (initial guess `init`) and the backward check.
+
+        Returns p1 (N, 2) float32, ok (N,) bool (both passes converged) and the
+        forward-backward round-trip error (N,) px (inf where a pass failed).
+        """
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(
+            self._prev_gray, gray, p0.reshape(-1, 1, 2), init.reshape(-1, 1, 2).copy(),
+            winSize=self._win, maxLevel=self._levels, criteria=_KLT_CRITERIA, flags=flags)
+        p1 = p1.reshape(-1, 2)
+        # Backward pass from p1 with the same prior offset mirrored: without a prior this
+        # starts at p1 itself (independent of p0, as in lk_track.py).
+        back_init = p1 - (init - p0)
+        p0r, st_b, _ = cv2.calcOpticalFlowPyrLK(
+            gray, self._prev_gray, p1.reshape(-1, 1, 2), back_init.reshape(-1, 1, 2),
+            winSize=self._win, maxLevel=self._levels, criteria=_KLT_CRITERIA, flags=flags)
+        ok = (st.reshape(-1) == 1) & (st_b.reshape(-1) == 1)
+        fb = np.linalg.norm(p0r.reshape(-1, 2) - p0, axis=1)
+        fb[~ok | ~np.isfinite(fb)] = np.inf
+        return p1, ok, fb
+
+    def _klt(self, gray: np.ndarray, predicted: object, stats: TrackerStats) -> None:
+        """Move the live tracks into the new frame; drop failures in place."""
+        p0 = self._px
+        init, used = self._prior(predicted)
+        stats.n_predicted = int(used.sum())
+        p1, ok, fb = self._lk_fb(gray, p0, init)
+        good = ok & (fb <= self._fb_max)
+        retry = used & ~good
+        if retry.any():
+            # The prior led KLT astray for these: plain KLT from the old position.
+            stats.n_prediction_retried = int(retry.sum())
+            p1r, okr, fbr = self._lk_fb(gray, p0[retry], p0[retry])
+            p1[retry], ok[retry], fb[retry] = p1r, okr, fbr
+            good = ok & (fb <= self._fb_max)
+        h, w = gray.shape
+        m = _BORDER_MARGIN_PX
+        inside = (p1[:, 0] >= m) & (p1[:, 0] <= w - 1 - m) & \
+                 (p1[:, 1] >= m) & (p1[:, 1] <= h - 1 - m) & np.isfinite(p1).all(axis=1)
+        keep = good & inside
+        stats.n_klt_failed = int((~ok).sum())
+        stats.n_fb_rejected = int((ok & ~good).sum())
+        stats.n_border_rejected = int((good & ~inside).sum())
+        self._ids = self._ids[keep]
+        self._px = np.ascontiguousarray(p1[keep], np.float32)
+        self._age = self._age[keep] + 1
+
+    def _detect(self, gray: np.ndarray) -> int:
+        """Bucketed Shi-Tomasi detection topping the tracks up to max_features."""
+        h, w = gray.shape
+        n_live = int(self._ids.shape[0])
+        deficit = self._max_features - n_live
+        if deficit <= 0:
+            return 0
+        rows, cols = int(self.cfg.grid_rows), int(self.cfg.grid_cols)
+        n_cells = rows * cols
+        ys = np.linspace(0, h, rows + 1).astype(int)
+        xs = np.linspace(0, w, cols + 1).astype(int)
+        quota = int(math.ceil(self._max_features / n_cells))
+
+        # Live tracks per cell, and a mask keeping new corners min distance away from
+        # them. cv2.circle per track is the cheapest way to rasterise the disks
+        # (measured 0.3 ms for 300 tracks vs 0.9 ms for an erosion).
+        if n_live:
+            cell_r = np.clip(np.searchsorted(ys, self._px[:, 1], side='right') - 1,
+                             0, rows - 1)
+            cell_c = np.clip(np.searchsorted(xs, self._px[:, 0], side='right') - 1,
+                             0, cols - 1)
+            existing = np.bincount(cell_r * cols + cell_c, minlength=n_cells)
+        else:
+            existing = np.zeros(n_cells, np.int64)
+        mask = np.full((h, w), 255, np.uint8)
+        radius = max(int(round(self._min_dist)), 1)
+        for u, v in np.rint(self._px).astype(np.int32):
+            cv2.circle(mask, (int(u), int(v)), radius, 0, -1)
+
+        # Per-cell detection: the quality threshold is relative to each cell's best
+        # corner, so weakly textured cells still get corners (bucketing as in
+        # Kitt, Geiger & Lategahn, "Visual odometry based on stereo image sequences
+        # with RANSAC-based outlier rejection", IV 2010). Pass 1 asks only the cells
+        # under quota (cheap: on KITTI tracks are lost mostly in a few border cells);
+        # pass 2 asks the full cells too when textureless cells left a large deficit.
+        need = np.maximum(quota - existing, 0)
+        found: list[np.ndarray] = [np.empty((0, 2), np.float32)] * n_cells
+        want = need * _CELL_OVERSAMPLING
+        self._detect_cells(gray, mask, ys, xs, want, found)
+        avail = np.array([f.shape[0] for f in found])
+        take = np.minimum(avail, need)
+        left = deficit - int(take.sum())
+        if left > _SECOND_PASS_FRACTION * self._max_features:
+            want2 = np.where(need == 0, quota, 0)
+            self._detect_cells(gray, mask, ys, xs, want2, found)
+
+        found = self._enforce_distance_across_cells(found, ys, xs)
+        avail = np.array([f.shape[0] for f in found])
+        take = np.minimum(avail, need)
+        left = deficit - int(take.sum())
+
+        # Allocation: each cell first gets up to its own need, then the deficit left by
+        # textureless cells goes to cells with spare corners (best first: GFTT returns
+        # corners sorted by decreasing quality).
+        if left < 0:
+            # More needed than the deficit (quota rounding): trim the fullest cells.
+            take = self._trim(take, existing, -left)
+        elif left > 0:
+            spare = avail - take
+            while left > 0 and spare.sum() > 0:
+                # Round-robin over cells with spare corners, fewest tracks first.
+                order = np.argsort(existing + take, kind='stable')
+                for k in order[spare[order] > 0]:
+                    if left == 0:
+                        break
+                    take[k] += 1
+                    spare[k] -= 1
+                    left -= 1
+        new_px = [f[:t] for f, t in zip(found, take) if t > 0]
+        if not new_px:
+            return 0
+        new = np.concatenate(new_px).astype(np.float32)
+        m = _BORDER_MARGIN_PX
+        new = new[(new[:, 0] >= m) & (new[:, 0] <= w - 1 - m) &
+                  (new[:, 1] >= m) & (new[:, 1] <= h - 1 - m)]
+        n_new = int(new.shape[0])
+        new_ids = np.arange(self._next_id, self._next_id + n_new, dtype=np.int64)
+        self._next_id += n_new
+        self._ids = np.concatenate([self._ids, new_ids])
+        self._px = np.ascontiguousarray(np.concatenate([self._px, new]), np.float32)
+        self._age = np.concatenate([self._age, np.zeros(n_new, np.int32)])
+        return n_new
+
+    def _detect_cells(self, gray: np.ndarray, mask: np.ndarray, ys: np.ndarray,
+                      xs: np.ndarray, want: np.ndarray, found: list[np.ndarray]) -> None:
+        """Shi-Tomasi in every cell k with want[k] > 0; corners (image px) into found[k].
+
+        The loop runs over grid cells (24 by default), not over features.
+        """
+        cols = xs.shape[0] - 1
+        for k in np.flatnonzero(want > 0):
+            r, c = divmod(int(k), cols)
+            y0, y1, x0, x1 = ys[r], ys[r + 1], xs[c], xs[c + 1]
+            if y1 - y0 < 8 or x1 - x0 < 8:
+                continue
+            roi = gray[y0:y1, x0:x1]
+            _, std = cv2.meanStdDev(roi)
+            if float(std[0, 0]) < _MIN_CONTRAST_GREY:
+                continue                      # flat cell: its "corners" would be noise
+            pts = cv2.goodFeaturesToTrack(
+                roi, maxCorners=int(want[k]), qualityLevel=float(self.cfg.corner_quality),
+                minDistance=self._min_dist, mask=mask[y0:y1, x0:x1],
+                blockSize=_CORNER_BLOCK_SIZE)
+            if pts is None:
+                continue
+            found[k] = pts.reshape(-1, 2) + np.array([x0, y0], np.float32)
+
+    def _enforce_distance_across_cells(self, found: list[np.ndarray], ys: np.ndarray,
+                                       xs: np.ndarray) -> list[np.ndarray]:
+        """Drop candidates closer than min distance to a candidate of an earlier cell.
+
+        Per-cell detection enforces the distance inside a cell only; two corners on either
+        side of a cell boundary can be arbitrarily close. Only corners within the min
+        distance of an inner boundary can conflict, so the pairwise test runs on those
+        (a few dozen to a few hundred), vectorised. Runs before the allocation so that
+        spare candidates replace the dropped ones. found[k]: (n_k, 2) per cell, best first.
+        """
+        sizes = [f.shape[0] for f in found]
+        if sum(sizes) < 2:
+            return found
+        allp = np.concatenate(found)
+        cell = np.repeat(np.arange(len(found)), sizes)
+        d = self._min_dist
+        near_x = np.abs(allp[:, 0:1] - xs[None, 1:-1]).min(axis=1, initial=np.inf) < d
+        near_y = np.abs(allp[:, 1:2] - ys[None, 1:-1]).min(axis=1, initial=np.inf) < d
+        idx = np.flatnonzero(near_x | near_y)
+        if idx.size < 2:
+            return found
+        p = allp[idx]
+        dist2 = ((p[:, None, :] - p[None, :, :]) ** 2).sum(axis=2)
+        # i < j in concatenation order: j is in a later cell (or the same cell, where
+        # GFTT already enforced the distance, so no pair there).
+        close = np.triu((dist2 < d * d) & (cell[idx][:, None] != cell[idx][None, :]), k=1)
+        drop = idx[close.any(axis=0)]
+        if drop.size == 0:
+            return found
+        keep = np.ones(allp.shape[0], bool)
+        keep[drop] = False
+        bounds = np.cumsum([0] + sizes)
+        return [allp[bounds[k]:bounds[k + 1]][keep[bounds[k]:bounds[k + 1]]]
+                for k in range(len(found))]
+
+    @staticmethod
+    def _trim(take: np.ndarray, existing: np.ndarray, excess: int) -> np.ndarray:
+        """Remove `excess` new corners, one at a time from the most populated cell."""
+        take = take.copy()
+        total = existing + take
+        while excess > 0:
+            cand = np.flatnonzero(take > 0)
+            k = cand[np.argmax(total[cand])]
+            take[k] -= 1
+            total[k] -= 1
+            excess -= 1
+        return take

@@ -1,0 +1,170 @@
+"""Two-view triangulation of ideal pixel observations, with the usual validity checks.
+
+Convention: `T_cam_world` (4x4) maps world points into the camera optical frame
+(x right, y down, z forward): X_cam = R X_world + t, with [R | t] the top 3x4 block.
+Pixels are IDEAL (undistorted) coordinates of the pinhole K: u = fx X/Z + cx,
+v = fy Y/Z + cy.
+
+Method: linear (DLT) triangulation (Hartley & Zisserman, "Multiple View Geometry", 2nd
+ed., sec. 12.2) through cv2.triangulatePoints, fed with NORMALISED image coordinates
+K^-1 [u v 1]^T and the projection matrices [R | t]: normalising first is the
+conditioning H&Z recommend (sec. 4.4.4) and makes the algebraic error meaningful. A point
+is valid only when
+
+1. its homogeneous coordinate is non-zero and the result finite,
+2. it lies in front of both cameras (cheirality, depth > `min_depth`),
+3. its reprojection error is below `max_reproj_px` in BOTH views,
+4. the parallax angle between the two viewing rays, angle(X - C1, X - C2) with C the
+   camera centres, is at least `min_parallax_deg` (small parallax means depth is poorly
+   constrained: depth error grows like pixel noise / parallax).
+
+Degenerate cases (they yield valid = False, never an exception):
+
+- zero baseline (both camera centres equal, e.g. pure rotation): every ray pair meets at
+  the centre or nowhere; the parallax is 0 for all points;
+- points on (or near) the baseline, i.e. near the epipoles: the two rays are (nearly)
+  collinear, parallax ~ 0, depth unobservable;
+- points at infinity or rays that are parallel (homogeneous w ~ 0): X is non-finite and
+  reported as NaN;
+- points behind either camera (a mismatched track, or the wrong one of the four
+  essential-matrix decompositions): cheirality fails;
+- N = 0: empty arrays.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+#: Minimum depth (in the map's length unit) for the cheirality check.
+DEFAULT_MIN_DEPTH = 1e-6
+#: |w| below this (relative to the largest homogeneous coordinate) is a point at infinity.
+_W_EPS = 1e-12
+
+
+@dataclass
+class TriangulationResult:
+    """Per-point output of `triangulate_points`.
+
+    Attributes:
+        X_world: (N, 3) float64 points in the world frame (NaN where w ~ 0).
+        valid: (N,) bool, all checks passed.
+        reproj_err_px: (N,) float64, the LARGER of the two views' reprojection errors
+            (inf where a depth is not positive).
+        parallax_deg: (N,) float64, angle between the rays from the two camera centres
+            to the point (0 where undefined).
+        depth1: (N,) float64, z of the point in camera 1.
+        depth2: (N,) float64, z of the point in camera 2.
+    """
+
+    X_world: np.ndarray
+    valid: np.ndarray
+    reproj_err_px: np.ndarray
+    parallax_deg: np.ndarray
+    depth1: np.ndarray
+    depth2: np.ndarray
+
+    @property
+    def n_valid(self) -> int:
+        return int(np.count_nonzero(self.valid))
+
+
+def _check_pose(T: np.ndarray, name: str) -> np.ndarray:
+    T = np.asarray(T, np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f'{name} must be a finite 4x4 matrix, got shape {T.shape}')
+    return T
+
+
+def project(T_cam_world: np.ndarray, X_world: np.ndarray, K: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection of world points (no distortion).
+
+    Returns (px (N, 2) ideal pixels, depth (N,) z in the camera frame).
+    """
+    X_cam = X_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    z = X_cam[:, 2]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        uv = X_cam[:, :2] / z[:, None]
+    px = uv @ K[:2, :2].T + K[:2, 2]
+    return px, z
+
+
+def triangulate_points(T_cam1_world: np.ndarray, T_cam2_world: np.ndarray,
+                       px1: np.ndarray, px2: np.ndarray, K: np.ndarray,
+                       max_reproj_px: float, min_parallax_deg: float,
+                       min_depth: float = DEFAULT_MIN_DEPTH) -> TriangulationResult:
+    """Triangulate N correspondences seen by two posed pinhole cameras.
+
+    Args:
+        T_cam1_world, T_cam2_world: (4, 4) world -> camera poses (X_cam = R X_w + t).
+        px1, px2: (N, 2) IDEAL pixel coordinates in camera 1 and camera 2.
+        K: (3, 3) pinhole intrinsics shared by both views.
+        max_reproj_px: largest accepted reprojection error (pixels, each view).
+        min_parallax_deg: smallest accepted angle between the two rays (degrees).
+        min_depth: smallest accepted depth in both cameras (map units).
+
+    Returns:
+        TriangulationResult with per-point points, validity and diagnostics.
+    """
+    T1 = _check_pose(T_cam1_world, 'T_cam1_world')
+    T2 = _check_pose(T_cam2_world, 'T_cam2_world')
+    K = np.asarray(K, np.float64)
+    px1 = np.asarray(px1, np.float64).reshape(-1, 2)
+    px2 = np.asarray(px2, np.float64).reshape(-1, 2)
+    if px1.shape != px2.shape:
+        raise ValueError(f'px1 {px1.shape} and px2 {px2.shape} differ')
+    n = px1.shape[0]
+    if n == 0:
+        e = np.empty(0, np.float64)
+        return TriangulationResult(np.empty((0, 3)), np.empty(0, bool), e, e.copy(),
+                                   e.copy(), e.copy())
+
+    # Normalised coordinates: x = K^-1 [u v 1]^T (H&Z sec. 4.4.4 conditioning).
+    K_inv = np.linalg.inv(K)
+    x1 = px1 @ K_inv[:2, :2].T + K_inv[:2, 2]
+    x2 = px2 @ K_inv[:2, :2].T + K_inv[:2, 2]
+    finite_in = np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1)
+    x1 = np.where(finite_in[:, None], x1, 0.0)
+    x2 = np.where(finite_in[:, None], x2, 0.0)
+
+    # DLT (H&Z eq. 12.1-12.2): smallest singular vector of the stacked cross products.
+    Xh = cv2.triangulatePoints(T1[:3], T2[:3], x1.T.copy(), x2.T.copy())   # (4, N)
+    w = Xh[3]
+    scale = np.abs(Xh).max(axis=0)
+    at_inf = ~(np.abs(w) > _W_EPS * np.maximum(scale, 1e-300))
+    with np.errstate(divide='ignore', invalid='ignore'):
+        X = (Xh[:3] / np.where(at_inf, np.nan, w)).T
+    finite = finite_in & ~at_inf & np.isfinite(X).all(axis=1)
+    X[~finite] = np.nan
+
+    # Cheirality: in front of both cameras.
+    px1_hat, z1 = project(T1, X, K)
+    px2_hat, z2 = project(T2, X, K)
+    in_front = finite & (z1 > min_depth) & (z2 > min_depth)
+
+    # Reprojection error, the worse of the two views.
+    with np.errstate(invalid='ignore'):
+        err = np.maximum(np.linalg.norm(px1_hat - px1, axis=1),
+                         np.linalg.norm(px2_hat - px2, axis=1))
+    err = np.where(in_front & np.isfinite(err), err, np.inf)
+
+    # Parallax: angle between the rays from the centres C = -R^T t to X.
+    C1 = -T1[:3, :3].T @ T1[:3, 3]
+    C2 = -T2[:3, :3].T @ T2[:3, 3]
+    r1 = X - C1
+    r2 = X - C2
+    with np.errstate(invalid='ignore', divide='ignore'):
+        cos = np.einsum('ij,ij->i', r1, r2) / (np.linalg.norm(r1, axis=1) *
+                                                np.linalg.norm(r2, axis=1))
+        parallax = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    parallax = np.where(np.isfinite(parallax), parallax, 0.0)
+
+    valid = in_front & (err < max_reproj_px) & (parallax >= min_parallax_deg)
+    logger.debug('triangulated %d/%d (finite %d, in front %d)', int(valid.sum()), n,
+                 int(finite.sum()), int(in_front.sum()))
+    return TriangulationResult(X, valid, err, parallax, z1, z2)

@@ -1,0 +1,398 @@
+"""vo_node: the ROS 2 edge around the estimation core (ekf_vo.core.pipeline).
+
+Subscribes  image (sensor_msgs/Image) or image/compressed (sensor_msgs/CompressedImage),
+            camera_info (sensor_msgs/CameraInfo); sensor-data QoS unless reliable_qos.
+Publishes   odom (nav_msgs/Odometry, reliable), landmarks (PointCloud2 updates for
+            map_node), ~/path (nav_msgs/Path), ~/status (diagnostic_msgs/DiagnosticArray),
+            ~/debug_image (sensor_msgs/Image, only computed while subscribed).
+Services    ~/reset (std_srvs/Trigger).
+
+Threading: subscription callbacks only convert and enqueue (bounded queue of
+`queue_size` frames; when full the OLDEST frame is dropped and counted); one worker thread
+runs the estimator and publishes, so a slow frame never blocks the executor.
+"""
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from ..config import ConfigError, NodeConfig, VoConfig
+from ..core.camera import CameraModelError, PinholeCamera
+from ..core.frames import camera_to_base, optical_to_body_extrinsic, points_to_odom
+from ..core.pipeline import TrackingState, VisualOdometry
+from . import conversions as conv
+from .params import declare_from_dataclass, install_validation
+
+#: a stamp this far behind the last one means time restarted (looping bag, sim reset)
+TIME_RESET_S = 1.0
+#: stamps further than this ahead of the last one are treated as corrupt
+FUTURE_JUMP_S = 3600.0
+
+
+class VoNode(Node):
+    """Monocular EKF visual odometry node."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('vo_node', **kwargs)
+        self.core_cfg: VoConfig = declare_from_dataclass(self, VoConfig)
+        self.node_cfg: NodeConfig = declare_from_dataclass(self, NodeConfig)
+        install_validation(self, VoConfig, self._on_core_params)
+        install_validation(self, NodeConfig, self._on_node_params)
+        self.T_base_cam = optical_to_body_extrinsic(self.node_cfg.T_base_cam_xyz,
+                                                    self.node_cfg.T_base_cam_xyzw)
+
+        self._lock = threading.Lock()          # guards camera / vo / counters
+        self._queue: collections.deque = collections.deque()
+        self._queue_cv = threading.Condition()
+        self._stop = threading.Event()
+        self.camera: PinholeCamera | None = None
+        self.vo: VisualOdometry | None = None
+        self._reset_requested = False
+        self._last_stamp_ns: int | None = None
+        self._published_ids: set[int] = set()
+        self._path = Path()
+        self._latencies_ms: collections.deque = collections.deque(maxlen=1000)
+        self._frame_times: collections.deque = collections.deque(maxlen=60)
+        self._last_status_time = 0.0
+        self._last_result = None
+        self.counters = collections.Counter()
+
+        sub_qos = qos_profile_sensor_data
+        if self.node_cfg.reliable_qos:
+            sub_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
+                                 history=HistoryPolicy.KEEP_LAST)
+        self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, sub_qos)
+        if self.node_cfg.image_transport == 'compressed':
+            self.create_subscription(CompressedImage, 'image/compressed',
+                                     self._on_compressed, sub_qos)
+        else:
+            self.create_subscription(Image, 'image', self._on_image, sub_qos)
+
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.odom_pub = self.create_publisher(Odometry, 'odom', reliable)
+        self.landmark_pub = self.create_publisher(
+            PointCloud2, 'landmarks', QoSProfile(depth=50,
+                                                 reliability=ReliabilityPolicy.RELIABLE))
+        self.path_pub = self.create_publisher(Path, '~/path', reliable)
+        self.status_pub = self.create_publisher(DiagnosticArray, '~/status', reliable)
+        self.debug_pub = self.create_publisher(Image, '~/debug_image', qos_profile_sensor_data)
+        self.create_service(Trigger, '~/reset', self._on_reset)
+        # the last status is kept for late subscribers
+        self._status_qos_latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._worker = threading.Thread(target=self._work, name='vo_worker', daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f'vo_node ready: estimator={self.core_cfg.estimator}, '
+            f'transport={self.node_cfg.image_transport}, odom_frame='
+            f'{self.node_cfg.odom_frame}, base_frame={self.node_cfg.base_frame}')
+
+    # ------------------------------------------------------------------ parameters
+    def _on_core_params(self, cfg: VoConfig) -> None:
+        with self._lock:
+            self.core_cfg = cfg
+            self.vo = None            # rebuilt with the new parameters on the next frame
+        self.get_logger().info('estimator parameters changed: re-initialising')
+
+    def _on_node_params(self, cfg: NodeConfig) -> None:
+        with self._lock:
+            self.node_cfg = cfg
+            self.T_base_cam = optical_to_body_extrinsic(cfg.T_base_cam_xyz,
+                                                        cfg.T_base_cam_xyzw)
+
+    # ------------------------------------------------------------------ inputs
+    def _warn(self, key: str, text: str) -> None:
+        """Count a rejected input and log it at most every 5 s per kind."""
+        self.counters[key] += 1
+        self.get_logger().warning(f'{text} [{key}: {self.counters[key]}]',
+                                  throttle_duration_sec=5.0)
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            info = conv.camera_info_to_dict(msg)
+            conv.validate_camera_info(info)
+            camera = PinholeCamera.from_camera_info(info)
+        except (conv.ConversionError, CameraModelError, ValueError) as exc:
+            self._warn('bad_camera_info', f'CameraInfo rejected: {exc}')
+            return
+        with self._lock:
+            if camera.same_as(self.camera):
+                return
+            if self.camera is not None:
+                self.get_logger().info('CameraInfo changed: re-initialising the estimator')
+            self.camera = camera
+            self.vo = None
+
+    def _on_image(self, msg: Image) -> None:
+        self._enqueue(msg, conv.image_to_gray, 'image')
+
+    def _on_compressed(self, msg: CompressedImage) -> None:
+        self._enqueue(msg, conv.compressed_to_gray, 'compressed image')
+
+    def _enqueue(self, msg: Any, decode, what: str) -> None:
+        received = time.perf_counter()
+        self.counters['received'] += 1
+        if self.camera is None:
+            self._warn('no_camera_info', f'{what} before any valid CameraInfo: skipped')
+            return
+        try:
+            stamp_ns = conv.stamp_to_ns(msg.header.stamp)
+            gray = decode(msg)
+        except conv.ConversionError as exc:
+            self._warn('bad_image', f'{what} rejected: {exc}')
+            return
+        frame_id = msg.header.frame_id
+        with self._queue_cv:
+            if len(self._queue) >= self.node_cfg.queue_size:
+                self._queue.popleft()
+                self.counters['dropped_behind'] += 1
+                self.get_logger().warning(
+                    f'estimator behind: dropped the oldest frame '
+                    f'[{self.counters["dropped_behind"]} so far]', throttle_duration_sec=5.0)
+            self._queue.append((stamp_ns, gray, frame_id, received))
+            self._queue_cv.notify()
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response
+                  ) -> Trigger.Response:
+        with self._lock:
+            self._reset_requested = True
+        response.success = True
+        response.message = 'reset scheduled: the next frame starts a new bootstrap'
+        return response
+
+    # ------------------------------------------------------------------ worker
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            with self._queue_cv:
+                while not self._queue and not self._stop.is_set():
+                    self._queue_cv.wait(timeout=0.2)
+                if self._stop.is_set():
+                    return
+                stamp_ns, gray, frame_id, received = self._queue.popleft()
+            try:
+                self._process(stamp_ns, gray, received)
+            except Exception as exc:  # keep the node alive; say what happened, reset
+                self.counters['internal_errors'] += 1
+                self.get_logger().error(f'estimator error, resetting: {exc!r}',
+                                        throttle_duration_sec=5.0)
+                with self._lock:
+                    self.vo = None
+
+    def _check_stamp(self, stamp_ns: int) -> bool:
+        """Drop duplicate / out-of-order / far-future stamps; reset when time restarts."""
+        last = self._last_stamp_ns
+        if last is None:
+            return True
+        if stamp_ns == last:
+            self._warn('duplicate_stamp', 'duplicate image stamp: dropped')
+            return False
+        if stamp_ns < last:
+            if (last - stamp_ns) * 1e-9 > TIME_RESET_S:
+                self.get_logger().warning('time went backwards (looping bag or sim reset): '
+                                          'resetting')
+                self.counters['time_resets'] += 1
+                self._reset_estimator('time went backwards')
+                return True
+            self._warn('out_of_order', 'out-of-order image stamp: dropped')
+            return False
+        if (stamp_ns - last) * 1e-9 > FUTURE_JUMP_S:
+            self._warn('future_stamp', 'image stamp jumps more than 1 h ahead: dropped')
+            return False
+        return True
+
+    def _reset_estimator(self, reason: str) -> None:
+        if self.vo is not None:
+            self.vo.reset(reason)
+        self._last_stamp_ns = None
+        self._path.poses.clear()
+        self._publish_removals(list(self._published_ids))
+
+    def _process(self, stamp_ns: int, gray: np.ndarray, received: float) -> None:
+        with self._lock:
+            camera, cfg = self.camera, self.core_cfg
+            if self._reset_requested:
+                self._reset_requested = False
+                self.counters['reset_requests'] += 1
+                self._reset_estimator('~/reset called')
+            if self.vo is None and camera is not None:
+                self.vo = VisualOdometry(cfg, camera)
+                self._last_stamp_ns = None
+                self._publish_removals(list(self._published_ids))
+            vo = self.vo
+        if vo is None:
+            return
+        if gray.shape != (camera.height, camera.width):
+            self._warn('size_mismatch', f'image {gray.shape[1]}x{gray.shape[0]} does not match '
+                       f'CameraInfo {camera.width}x{camera.height}: dropped')
+            return
+        if not self._check_stamp(stamp_ns):
+            return
+        self._last_stamp_ns = stamp_ns
+        result = vo.process(gray, stamp_ns)
+        self.counters['processed'] += 1
+        self._frame_times.append(time.perf_counter())
+        if result.ok:
+            self._publish_odometry(result)
+            self._latencies_ms.append((time.perf_counter() - received) * 1e3)
+            self.counters['published'] += 1
+        elif result.message:
+            self.get_logger().info(f'[{result.state.value}] {result.message}',
+                                   throttle_duration_sec=2.0)
+        if result.bootstrapped or self.counters['processed'] % \
+                self.node_cfg.landmarks_every_n_frames == 0:
+            self._publish_landmarks(vo, stamp_ns)
+        self._last_result = result
+        if self.debug_pub.get_subscription_count() > 0:
+            self._publish_debug(gray, result)
+        now = time.perf_counter()
+        if now - self._last_status_time > 0.5:
+            self._last_status_time = now
+            self._publish_status(result)
+
+    # ------------------------------------------------------------------ outputs
+    def _publish_odometry(self, result) -> None:
+        T_odom_base, cov, twist, twist_cov = camera_to_base(
+            result.T_world_cam, result.pose_cov, result.twist_cam, result.twist_cov,
+            self.T_base_cam)
+        try:
+            msg = conv.pose_to_odometry(T_odom_base, cov, twist[:3], twist[3:], twist_cov,
+                                        result.stamp_ns, self.node_cfg.odom_frame,
+                                        self.node_cfg.base_frame)
+        except conv.ConversionError as exc:
+            self._warn('bad_output', f'odometry not published: {exc}')
+            return
+        self.odom_pub.publish(msg)
+        if self.node_cfg.publish_path:
+            pose = PoseStamped()
+            pose.header = msg.header
+            pose.pose = msg.pose.pose
+            self._path.header = msg.header
+            self._path.poses.append(pose)
+            if len(self._path.poses) > self.node_cfg.max_path_length:
+                del self._path.poses[0]
+            self.path_pub.publish(self._path)
+
+    def _publish_landmarks(self, vo: VisualOdometry, stamp_ns: int) -> None:
+        changes = vo.map.pop_changes()
+        removed = [int(i) for i in changes.removed_ids if int(i) in self._published_ids]
+        if len(changes.ids) == 0 and not removed:
+            return
+        X = points_to_odom(changes.X_world, self.T_base_cam) if len(changes.ids) else \
+            np.zeros((0, 3))
+        xyz = np.vstack((X, np.full((len(removed), 3), np.nan)))
+        ids = np.concatenate((changes.ids, np.array(removed, np.int64))).astype(np.uint32)
+        n_obs = np.concatenate((changes.n_obs, np.zeros(len(removed), np.int32)))
+        flag = np.concatenate((np.zeros(len(changes.ids)), np.ones(len(removed))))
+        msg = conv.points_to_pointcloud2(
+            xyz.astype(np.float32), stamp_ns, self.node_cfg.odom_frame,
+            {'id': ids, 'n_obs': n_obs.astype(np.uint32), 'removed': flag.astype(np.uint8)})
+        self.landmark_pub.publish(msg)
+        self._published_ids.update(int(i) for i in changes.ids)
+        self._published_ids.difference_update(removed)
+
+    def _publish_removals(self, ids: list) -> None:
+        if not ids:
+            return
+        msg = conv.points_to_pointcloud2(
+            np.full((len(ids), 3), np.nan, np.float32), self._stamp_now(),
+            self.node_cfg.odom_frame,
+            {'id': np.array(ids, np.uint32), 'n_obs': np.zeros(len(ids), np.uint32),
+             'removed': np.ones(len(ids), np.uint8)})
+        self.landmark_pub.publish(msg)
+        self._published_ids.clear()
+
+    def _stamp_now(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    def _publish_debug(self, gray: np.ndarray, result) -> None:
+        img = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+        if result.track_px is not None:
+            inl = result.track_inlier if result.track_inlier is not None else \
+                np.zeros(len(result.track_px), bool)
+            has = result.track_has_point if result.track_has_point is not None else inl
+            for (u, v), i, h in zip(result.track_px, inl, has):
+                color = (0, 255, 0) if i else ((0, 0, 255) if h else (255, 160, 0))
+                cv2.circle(img, (int(u), int(v)), 3, color, 1, cv2.LINE_AA)
+        cv2.putText(img, f'{result.state.value} inliers {result.n_inliers} map '
+                    f'{result.map_size}', (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+        self.debug_pub.publish(conv.numpy_to_image(img, 'bgr8', result.stamp_ns,
+                                                   'camera_debug'))
+
+    def status_values(self) -> dict:
+        """Numbers reported on ~/status (also used by tests and the latency bench)."""
+        fps = 0.0
+        if len(self._frame_times) > 1:
+            span = self._frame_times[-1] - self._frame_times[0]
+            fps = (len(self._frame_times) - 1) / span if span > 0 else 0.0
+        lat = np.array(self._latencies_ms) if self._latencies_ms else np.zeros(1)
+        r = self._last_result
+        vals = {'state': r.state.value if r else 'waiting',
+                'fps': round(fps, 2), 'latency_p50_ms': round(float(np.percentile(lat, 50)), 2),
+                'latency_p95_ms': round(float(np.percentile(lat, 95)), 2),
+                'tracks': r.n_tracks if r else 0, 'inliers': r.n_inliers if r else 0,
+                'map_points': r.map_size if r else 0,
+                'resets': self.vo.n_resets if self.vo else 0}
+        vals.update(self.counters)
+        return vals
+
+    def _publish_status(self, result) -> None:
+        vals = self.status_values()
+        st = DiagnosticStatus()
+        st.name = f'{self.get_name()}: visual odometry'
+        st.hardware_id = 'camera'
+        if result.state == TrackingState.TRACKING and result.ok:
+            st.level = DiagnosticStatus.OK
+        elif result.state == TrackingState.INITIALISING:
+            st.level = DiagnosticStatus.WARN
+        else:
+            st.level = DiagnosticStatus.ERROR
+        st.message = f'{result.state.value}: {result.message or "ok"}'
+        st.values = [KeyValue(key=str(k), value=str(v)) for k, v in vals.items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = conv.ns_to_stamp(result.stamp_ns)
+        arr.status = [st]
+        self.status_pub.publish(arr)
+
+    def destroy_node(self) -> None:
+        self._stop.set()
+        with self._queue_cv:
+            self._queue_cv.notify_all()
+        self._worker.join(timeout=2.0)
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = VoNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ConfigError as exc:
+        rclpy.logging.get_logger('vo_node').fatal(f'invalid parameters: {exc}')
+        raise SystemExit(2) from exc
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
