@@ -1,0 +1,90 @@
+"""Speed of the core: frames/s and per-stage milliseconds (images decoded beforehand).
+
+640x480: the bundled demo bag (synthetic hand-held, 30 Hz). 1226x370: KITTI 06 f0-50 when
+../shared/data is present. Times are wall-clock on this machine, single process.
+
+    python -m ekf_vo.bench.speed [--repeat 3]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..config import VoConfig
+from ..core.camera import PinholeCamera
+from ..core.pipeline import VisualOdometry
+from .common import machine, shared_data
+
+DEMO_BAG = Path(__file__).resolve().parents[2] / 'bags' / 'demo'
+
+
+def load_demo_frames(bag: Path = DEMO_BAG) -> tuple[dict, list]:
+    from ..ros import conversions as conv   # message field access only, no rclpy import
+    from ..tools import bagio
+    info, frames = None, []
+    for _, msgtype, _, msg in bagio.iter_bag(bag):
+        if msgtype.endswith('CameraInfo') and info is None:
+            info = conv.camera_info_to_dict(msg)
+        elif msgtype.endswith('CompressedImage') or msgtype.endswith('/Image'):
+            frames.append((conv.stamp_to_ns(msg.header.stamp), bagio.decode_image(
+                msgtype, msg)))
+    return info, frames
+
+
+def load_kitti_frames() -> tuple[dict, list] | None:
+    from ..tools.dataset import load_folder
+    folder = shared_data('kitti06_f0-50')
+    if folder is None:
+        return None
+    data = load_folder(folder)
+    return data.camera, list(data.frames())
+
+
+def time_core(info: dict, frames: list, cfg: VoConfig | None = None, repeat: int = 3
+              ) -> dict:
+    """Best-of-`repeat` frames/s and mean / p95 per-stage ms over the frames."""
+    best = None
+    for rep in range(repeat):
+        vo = VisualOdometry(cfg or VoConfig(), PinholeCamera.from_camera_info(info), seed=rep)
+        stages: dict[str, list] = {}
+        t0 = time.perf_counter()
+        for stamp, gray in frames:
+            res = vo.process(gray, stamp)
+            for key, ms in res.timings_ms.items():
+                stages.setdefault(key, []).append(ms)
+        wall = time.perf_counter() - t0
+        fps = len(frames) / wall
+        if best is None or fps > best['fps']:
+            best = {'fps': fps, 'frames': len(frames),
+                    'stage_ms_mean': {k: float(np.mean(v)) for k, v in stages.items()},
+                    'stage_ms_p95': {k: float(np.percentile(v, 95)) for k, v in
+                                     stages.items()}}
+    best['resolution'] = f'{info["width"]}x{info["height"]}'
+    return best
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--repeat', type=int, default=3)
+    args = parser.parse_args(argv)
+    print(f'machine: {machine()}')
+    runs = [('demo bag', load_demo_frames())]
+    kitti = load_kitti_frames()
+    if kitti is not None:
+        runs.append(('KITTI 06', kitti))
+    for name, (info, frames) in runs:
+        r = time_core(info, frames, repeat=args.repeat)
+        stages = ', '.join(f'{k} {v:.1f}' for k, v in r['stage_ms_mean'].items()
+                           if k != 'total')
+        print(f'{name:<9} {r["resolution"]:>9}: {r["fps"]:6.1f} frames/s, total '
+              f'{r["stage_ms_mean"]["total"]:.1f} ms mean / {r["stage_ms_p95"]["total"]:.1f} '
+              f'ms p95; stages (mean ms): {stages}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
