@@ -65,6 +65,7 @@ class VoNode(Node):
         self._reset_requested = False
         self._last_stamp_ns: int | None = None
         self._published_ids: set[int] = set()
+        self._landmark_subscribers = 0
         self._path = Path()
         self._latencies_ms: collections.deque = collections.deque(maxlen=1000)
         self._frame_times: collections.deque = collections.deque(maxlen=60)
@@ -289,6 +290,12 @@ class VoNode(Node):
 
     def _publish_landmarks(self, vo: VisualOdometry, stamp_ns: int) -> None:
         changes = vo.map.pop_changes()
+        n_subs = self.landmark_pub.get_subscription_count()
+        if n_subs > self._landmark_subscribers:
+            # a map_node joined (or restarted): send it the whole map, not just changes
+            changes.ids, changes.X_world = vo.map.ids.copy(), vo.map.X_world.copy()
+            changes.n_obs = vo.map.n_obs.copy()
+        self._landmark_subscribers = n_subs
         removed = [int(i) for i in changes.removed_ids if int(i) in self._published_ids]
         if len(changes.ids) == 0 and not removed:
             return

@@ -1,0 +1,173 @@
+"""Drive real rclpy nodes over DDS from a test or a benchmark (no mocks): node processes,
+a driver node with polling, a frame feeder, one DDS domain per test module."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import zlib
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def domain_id_for(module_name: str, base: int = 100, span: int = 50) -> int:
+    """A DDS domain per test module so parallel runs do not cross-talk (100..149)."""
+    return base + zlib.crc32(module_name.rpartition('.')[2].encode()) % span
+
+
+class NodeProcess:
+    """A node started as its own process (`python -m module --ros-args ...`)."""
+
+    def __init__(self, module: str, ros_args: list[str], domain_id: int, log: Path) -> None:
+        self.log = log
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
+        with open(log, 'wb') as out:
+            self.proc = subprocess.Popen([sys.executable, '-m', module, '--ros-args',
+                                          *ros_args], cwd=ROOT, env=env, stdout=out,
+                                         stderr=subprocess.STDOUT)
+
+    def output(self) -> str:
+        return self.log.read_text(errors='replace')
+
+    def wait_for_output(self, text: str, timeout: float = 20.0) -> None:
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            if text in self.output():
+                return
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        raise AssertionError(f'{text!r} not printed; output:\n{self.output()}')
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+
+class Harness:
+    """A test-side node with its own context and executor, and polling helpers."""
+
+    def __init__(self, domain_id: int, name: str = 'test_harness') -> None:
+        os.environ['ROS_DOMAIN_ID'] = str(domain_id)
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = Node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_for(self, seconds: float) -> None:
+        deadline = time.time() + seconds
+        while time.time() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def spin_until(self, condition: Callable[[], bool], timeout: float) -> bool:
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            if condition():
+                return True
+            self.executor.spin_once(timeout_sec=0.02)
+        return condition()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def encode(gray: np.ndarray, encoding: str) -> np.ndarray:
+    """A grey frame as an array of the given sensor_msgs/Image encoding."""
+    if encoding == 'mono8':
+        return gray
+    if encoding == 'mono16':
+        return gray.astype(np.uint16) * 257
+    rgb = np.dstack([gray] * 3)
+    if encoding in ('rgba8', 'bgra8'):
+        return np.dstack((rgb, np.full_like(gray, 255)))
+    return rgb
+
+
+class Feeder:
+    """Publishes frames + CameraInfo at a rate and records vo_node's odometry and status.
+
+    Records, per odometry message, the wall time it arrived, so publish-to-odometry
+    latency can be measured end to end over DDS."""
+
+    def __init__(self, h: Harness, info: dict, compressed: bool = False,
+                 prefix: str = '/cam', reliable: bool = True) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+        from ..ros import conversions as conv
+        self.conv = conv
+        self.h, self.info = h, info
+        qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)
+        pub_qos = qos if reliable else qos_profile_sensor_data
+        n = h.node
+        self.info_pub = n.create_publisher(CameraInfo, f'{prefix}/camera_info', pub_qos)
+        self.img_pub = n.create_publisher(CompressedImage if compressed else Image,
+                                          f'{prefix}/image/compressed' if compressed
+                                          else f'{prefix}/image', pub_qos)
+        self.odom: list = []
+        self.odom_wall: dict[int, float] = {}
+        self.sent_wall: dict[int, float] = {}
+        self.status: list = []
+        n.create_subscription(Odometry, '/odom', self._on_odom, qos)
+        n.create_subscription(DiagnosticArray, '/vo_node/status', self.status.append, qos)
+
+    def _on_odom(self, msg) -> None:
+        self.odom.append(msg)
+        self.odom_wall[self.conv.stamp_to_ns(msg.header.stamp)] = time.perf_counter()
+
+    def wait_connected(self, timeout: float = 20.0) -> None:
+        assert self.h.spin_until(lambda: self.img_pub.get_subscription_count() > 0
+                                 and self.info_pub.get_subscription_count() > 0, timeout), \
+            'vo_node did not subscribe'
+        self.h.spin_for(0.3)
+
+    def publish(self, frames, make_msg, rate_hz: float = 20.0) -> list[int]:
+        """Publish (stamp_ns, gray) frames; make_msg(k, stamp, gray) builds the image."""
+        stamps = []
+        t_next = time.perf_counter()
+        for k, (stamp, gray) in enumerate(frames):
+            self.info_pub.publish(self.conv.camera_info_from_params(
+                self.info['width'], self.info['height'], self.info['K'], self.info['D'],
+                self.info['distortion_model'], stamp, 'camera_optical'))
+            msg = make_msg(k, stamp, gray)
+            self.sent_wall[stamp] = time.perf_counter()
+            self.img_pub.publish(msg)
+            stamps.append(stamp)
+            t_next += 1.0 / rate_hz
+            while time.perf_counter() < t_next:
+                self.h.executor.spin_once(timeout_sec=max(0.0, min(
+                    0.005, t_next - time.perf_counter())))
+        return stamps
+
+    def wait_last(self, stamp: int, timeout: float = 10.0) -> None:
+        self.h.spin_until(lambda: stamp in self.odom_wall, timeout)
+
+    def latencies_ms(self) -> np.ndarray:
+        """Publish-to-odometry latency over DDS per frame that produced odometry."""
+        return np.array([(self.odom_wall[s] - self.sent_wall[s]) * 1e3
+                         for s in self.odom_wall if s in self.sent_wall])

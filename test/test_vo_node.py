@@ -1,0 +1,146 @@
+"""vo_node (and map_node) in their own processes, fed over DDS from the demo bag's frames.
+
+Checks what a robot relies on: odometry for >= 95 % of the frames after bootstrap, stamps
+equal to the image stamps, frames as configured, covariance symmetric positive definite and
+non-zero, every listed raw encoding (with row padding) and compressed input, the map
+delivered to a subscriber that joins late, ~/reset, and bad input surviving.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from nav_msgs.msg import Odometry
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CompressedImage, PointCloud2
+from std_srvs.srv import Trigger
+
+from ekf_vo.bench.speed import load_demo_frames
+from ekf_vo.ros import conversions as conv
+
+from ekf_vo.bench.ros_harness import Feeder, Harness, NodeProcess, domain_id_for, encode
+
+pytestmark = pytest.mark.ros
+DOMAIN = domain_id_for(__name__)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+ENCODINGS = ('mono8', 'mono16', 'rgb8', 'bgr8', 'rgba8', 'bgra8')
+RATE_HZ = 20.0
+
+
+@pytest.fixture(scope='module')
+def demo():
+    info, frames = load_demo_frames()
+    return info, frames[:150]
+
+
+def start_vo(tmp_path, *params: str) -> NodeProcess:
+    args = ['-r', 'image:=/cam/image', '-r', 'image/compressed:=/cam/image/compressed',
+            '-r', 'camera_info:=/cam/camera_info', '-r', 'odom:=/odom',
+            '-p', 'reliable_qos:=true']
+    for p in params:
+        args += ['-p', p]
+    node = NodeProcess('ekf_vo.ros.vo_node', args, DOMAIN, tmp_path / 'vo_node.log')
+    node.wait_for_output('vo_node ready')
+    return node
+
+
+def check_odometry(odom: list[Odometry], stamps: list[int], odom_frame: str,
+                   base_frame: str) -> None:
+    got = [conv.stamp_to_ns(m.header.stamp) for m in odom]
+    assert got, 'no odometry'
+    assert set(got) <= set(stamps), 'odometry stamps must be image stamps'
+    assert got == sorted(got) and len(set(got)) == len(got)
+    first = stamps.index(got[0])
+    after_bootstrap = stamps[first:]
+    coverage = len(got) / len(after_bootstrap)
+    assert coverage >= 0.95, f'odometry for {coverage:.1%} of the frames after bootstrap'
+    for m in odom:
+        assert m.header.frame_id == odom_frame and m.child_frame_id == base_frame
+        for cov in (m.pose.covariance, m.twist.covariance):
+            C = np.asarray(cov).reshape(6, 6)
+            assert np.all(np.isfinite(C))
+            assert np.allclose(C, C.T)
+            assert np.linalg.eigvalsh(C).min() > 0
+        p = m.pose.pose.position
+        assert np.all(np.isfinite([p.x, p.y, p.z]))
+
+
+def test_raw_every_encoding_frames_and_late_map(tmp_path, demo):
+    info, frames = demo
+    vo = start_vo(tmp_path, 'odom_frame:=test_odom', 'base_frame:=test_base')
+    mapper = NodeProcess('ekf_vo.ros.map_node', ['-p', 'publish_rate_hz:=4.0',
+                                                 '-p', 'odom_frame:=test_odom'],
+                         DOMAIN, tmp_path / 'map_node.log')
+    h = Harness(DOMAIN)
+    try:
+        feed = Feeder(h, info)
+        feed.wait_connected()
+        mapper.wait_for_output('map_node')
+        per = len(frames) // len(ENCODINGS) + 1
+
+        def make(k, stamp, gray):
+            enc = ENCODINGS[k // per]
+            return conv.numpy_to_image(encode(gray, enc), enc, stamp, 'camera_optical',
+                                       step_padding=8 if k % 2 else 0)
+        stamps = feed.publish(frames, make, RATE_HZ)
+        feed.wait_last(stamps[-1])
+        check_odometry(feed.odom, stamps, 'test_odom', 'test_base')
+        # every encoding segment produced odometry
+        got = {conv.stamp_to_ns(m.header.stamp) for m in feed.odom}
+        for i, enc in enumerate(ENCODINGS):
+            seg = set(stamps[i * per:(i + 1) * per])
+            assert len(seg & got) >= 0.9 * len(seg) - 8, f'{enc}: too little odometry'
+        # status says tracking with counts
+        assert feed.status, 'no ~/status'
+        values = {kv.key: kv.value for kv in feed.status[-1].status[0].values}
+        assert values['state'] == 'tracking' and int(values['map_points']) > 50
+
+        # a subscriber that joins late still gets the map (transient local)
+        clouds: list[PointCloud2] = []
+        h.node.create_subscription(PointCloud2, '/map_points', clouds.append, LATCHED)
+        assert h.spin_until(lambda: clouds, 10.0), 'late subscriber got no map'
+        cloud = clouds[-1]
+        assert cloud.header.frame_id == 'test_odom'
+        xyz = conv.pointcloud2_to_numpy(cloud)
+        assert len(xyz['x']) > 50 and np.all(np.isfinite(xyz['x']))
+        assert vo.alive() and mapper.alive()
+    finally:
+        h.close()
+        assert vo.stop() in (0, -2), vo.output()
+        mapper.stop()
+
+
+def test_compressed_input_reset_and_bad_input(tmp_path, demo):
+    info, frames = demo
+    vo = start_vo(tmp_path, 'image_transport:=compressed')
+    h = Harness(DOMAIN)
+    try:
+        feed = Feeder(h, info, compressed=True)
+        feed.wait_connected()
+        make = lambda k, stamp, gray: conv.numpy_to_compressed(  # noqa: E731
+            gray, 'jpeg', stamp, 'camera_optical')
+        stamps = feed.publish(frames[:80], make, RATE_HZ)
+        feed.wait_last(stamps[-1])
+        check_odometry(feed.odom, stamps, 'odom', 'base_link')
+
+        # garbage bytes, then ~/reset, then good frames again: the node re-bootstraps
+        bad = CompressedImage()
+        bad.format = 'jpeg'
+        bad.data = b'not a jpeg at all'
+        feed.img_pub.publish(bad)
+        client = h.node.create_client(Trigger, '/vo_node/reset')
+        assert client.wait_for_service(timeout_sec=10.0)
+        future = client.call_async(Trigger.Request())
+        assert h.spin_until(future.done, 10.0) and future.result().success
+        n_before = len(feed.odom)
+        stamps2 = feed.publish(frames[80:150], make, RATE_HZ)
+        feed.wait_last(stamps2[-1])
+        after = feed.odom[n_before:]
+        assert len(after) >= 0.7 * len(stamps2), 'did not recover after ~/reset'
+        assert vo.alive()
+        assert 'compressed image rejected' in vo.output()
+    finally:
+        h.close()
+        vo.stop()
