@@ -272,6 +272,8 @@ def from_mapping(cls: type, values: Mapping[str, Any], strict: bool = True) -> A
         if isinstance(default, int) and not isinstance(default, bool) \
                 and isinstance(value, float) and value.is_integer():
             value = int(value)
+        if isinstance(default, tuple) and isinstance(value, (list, tuple)):
+            value = tuple(float(v) for v in value)   # ROS double arrays arrive as lists
         kwargs[key] = value
     return cls(**kwargs)
 

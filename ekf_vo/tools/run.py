@@ -1,0 +1,584 @@
+"""Run the estimation core offline on a rosbag2 bag (no DDS, no rclpy) and evaluate it.
+
+Console script::
+
+    ekf-vo-run BAG -o EST.tum [--params config/ekf_vo.yaml] [--set name=value ...]
+               [--image-topic T] [--info-topic T] [--gt-topic T] [--stats stats.csv]
+               [--json summary.json] [--limit N] [--gt-bootstrap] [--quiet]
+
+What it does, per image message of the bag (in log-time order):
+
+1. topics: the image topic is the first ``sensor_msgs/msg/Image`` topic of the bag, else the
+   first ``CompressedImage`` topic; the CameraInfo topic is the one in the image topic's
+   namespace (``/cam/image_raw[/compressed]`` -> ``/cam/camera_info``), else the first
+   CameraInfo topic; ground truth is ``/ground_truth/pose`` when present. All overridable.
+2. parameters: the core (:class:`ekf_vo.config.VoConfig`) fields of the ``vo_node:
+   ros__parameters:`` section of ``--params`` (node-only fields such as ``odom_frame`` are
+   accepted and ignored), then ``--set name=value`` overrides, typed by the field type.
+3. images are decoded to grey with :mod:`ekf_vo.ros.conversions` (the same code as vo_node);
+   the stamp is the header stamp. Images before the first valid CameraInfo are skipped; a
+   CameraInfo that changes the calibration re-creates the :class:`VisualOdometry` (its new
+   trajectory starts at the identity again, as a restarted node would).
+4. ``VisualOdometry.process`` runs on each image; with ``--gt-bootstrap`` the ground-truth
+   pose at the image stamp is passed as ``known_T_world_cam`` while the pipeline state is
+   ``initialising`` (the EKFPnP paper's protocol: ground truth fixes the bootstrap scale).
+5. output: ``T_world_cam`` of the camera optical frame of the frames with ``result.ok`` (the
+   online trajectory a node would publish) as TUM text; per-frame statistics as CSV; a
+   summary (frames, % tracked, frames/s, mean per-stage ms) and, when the bag has ground
+   truth, :func:`ekf_vo.tools.evaluate.evaluate` (ATE after Sim(3), rotation error, %
+   tracked) printed and written to ``--json``.
+
+Exit codes: 0 success; 2 bad input (missing bag, no image/CameraInfo topic, unknown or
+invalid parameter). A failed evaluation (e.g. fewer than 3 tracked frames) is reported and
+does not change the exit code.
+
+Library use (tests, benchmarks)::
+
+    summary = run_bag('bags/demo', overrides={'estimator': 'iekf'})
+    print(summary.pct_tracked, summary.eval.ate_sim3_pct_of_path)
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import logging
+import math
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import ConfigError, NodeConfig, VoConfig, load_yaml_params, split_params
+
+logger = logging.getLogger(__name__)
+
+IMAGE = 'sensor_msgs/msg/Image'
+COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+GT_TOPIC = '/ground_truth/pose'
+
+#: per-frame CSV columns before the per-stage timings (``ms_<stage>``) and the message
+STATS_COLUMNS = ('stamp_ns', 'stamp_s', 'state', 'ok', 'n_tracks', 'n_matches', 'n_inliers',
+                 'n_new_points', 'map_size')
+
+
+class RunError(RuntimeError):
+    """The bag cannot be run (missing, no image or CameraInfo topic, bad parameters)."""
+
+
+@dataclass
+class FrameStats:
+    """One row of the per-frame statistics (one image fed to the core)."""
+
+    stamp_ns: int
+    state: str
+    ok: bool
+    n_tracks: int
+    n_matches: int
+    n_inliers: int
+    n_new_points: int
+    map_size: int
+    timings_ms: dict[str, float]
+    message: str = ''
+
+
+@dataclass
+class RunSummary:
+    """Result of :func:`run_bag`.
+
+    Attributes:
+        bag: the bag path.
+        image_topic, info_topic: topics used; gt_topic: ground-truth topic or None.
+        config: the core parameters used.
+        frames: images fed to the core.
+        frames_skipped: images not fed (before the first valid CameraInfo, undecodable).
+        frames_ok: frames with ``result.ok`` (poses in the trajectory).
+        pct_tracked: ``100 * frames_ok / frames`` [%].
+        wall_s: wall time of the loop (bag reading, decoding, core) [s].
+        fps: ``frames / wall_s`` [frames/s].
+        core_fps: frames per second of ``process()`` alone (sum of its 'total' timings).
+        stage_ms: mean duration per pipeline stage over the frames that ran it [ms].
+        n_resets: tracking resets inside the core (summed over VO instances).
+        n_camera_changes: calibration changes that re-created the VO.
+        est_stamps_s: (N,) stamps [s] of the trajectory.
+        est_T_world_cam: (N, 4, 4) camera optical frame -> world (VO world frame, VO scale).
+        frame_stats: per-frame statistics, in order.
+        eval: :class:`ekf_vo.tools.evaluate.EvalResult` or None (no ground truth / failed).
+        eval_error: why the evaluation failed, or None.
+        gt_bootstrap: whether ground truth was given to the bootstrap.
+    """
+
+    bag: str
+    image_topic: str
+    info_topic: str
+    gt_topic: str | None
+    config: VoConfig
+    frames: int = 0
+    frames_skipped: int = 0
+    frames_ok: int = 0
+    pct_tracked: float = 0.0
+    wall_s: float = 0.0
+    fps: float = 0.0
+    core_fps: float = 0.0
+    stage_ms: dict[str, float] = field(default_factory=dict)
+    n_resets: int = 0
+    n_camera_changes: int = 0
+    est_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    est_T_world_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)),
+                                        repr=False)
+    frame_stats: list[FrameStats] = field(default_factory=list, repr=False)
+    eval: Any = None
+    eval_error: str | None = None
+    gt_bootstrap: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable summary (no per-frame data)."""
+        out: dict[str, Any] = {
+            'bag': self.bag, 'image_topic': self.image_topic, 'info_topic': self.info_topic,
+            'gt_topic': self.gt_topic, 'frames': self.frames,
+            'frames_skipped': self.frames_skipped, 'frames_ok': self.frames_ok,
+            'pct_tracked': self.pct_tracked, 'wall_s': self.wall_s, 'fps': self.fps,
+            'core_fps': self.core_fps, 'stage_ms': dict(self.stage_ms),
+            'n_resets': self.n_resets, 'n_camera_changes': self.n_camera_changes,
+            'gt_bootstrap': self.gt_bootstrap,
+            'config': dataclasses.asdict(self.config),
+            'eval': self.eval.to_dict() if self.eval is not None else None,
+            'eval_error': self.eval_error,
+        }
+        return _finite(out)
+
+
+def _finite(obj: Any) -> Any:
+    """Replace NaN/inf floats by None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+# ============================================================================ parameters
+def _parse_bool(text: str) -> bool:
+    low = text.strip().lower()
+    if low in ('1', 'true', 'yes', 'on'):
+        return True
+    if low in ('0', 'false', 'no', 'off'):
+        return False
+    raise ValueError(f'{text!r} is not a boolean (true/false)')
+
+
+def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``['name=value', ...]`` -> ``{name: typed value}`` for :class:`VoConfig` fields.
+
+    The type is the field's default type (bool, int, float, str; a tuple takes
+    comma-separated numbers).
+
+    Raises:
+        ConfigError: malformed item, unknown parameter or a value of the wrong type.
+    """
+    core = {f.name: f for f in dataclasses.fields(VoConfig)}
+    node = {f.name for f in dataclasses.fields(NodeConfig)}
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = item.partition('=')
+        name = name.strip()
+        if not sep or not name:
+            raise ConfigError(f'--set expects name=value, got {item!r}')
+        if name not in core:
+            if name in node:
+                raise ConfigError(f'--set {name}: a vo_node ROS parameter, not used by the '
+                                  f'offline runner (core parameters only)')
+            raise ConfigError(f'--set {name}: unknown parameter (list them with '
+                              f'ekf-vo-params)')
+        default = core[name].default
+        try:
+            if isinstance(default, bool):
+                value: Any = _parse_bool(text)
+            elif isinstance(default, int):
+                f = float(text)
+                if not f.is_integer():
+                    raise ValueError(f'{text!r} is not an integer')
+                value = int(f)
+            elif isinstance(default, float):
+                value = float(text)
+            elif isinstance(default, tuple):
+                value = tuple(float(v) for v in text.split(',') if v.strip())
+            else:
+                value = text
+        except ValueError as exc:
+            raise ConfigError(f'--set {name}={text}: {exc} (type '
+                              f'{type(default).__name__})') from None
+        out[name] = value
+    return out
+
+
+def make_config(params: str | Path | Mapping[str, Any] | VoConfig | None = None,
+                overrides: Mapping[str, Any] | None = None) -> VoConfig:
+    """The core config from a params YAML path, a flat vo_node parameter mapping, a
+    VoConfig or None (defaults), with ``overrides`` (core field -> value) applied.
+
+    Raises:
+        ConfigError: unknown parameter, wrong type or out-of-range value.
+    """
+    if params is None:
+        cfg = VoConfig()
+    elif isinstance(params, VoConfig):
+        cfg = params
+    else:
+        if isinstance(params, (str, Path)):
+            if not Path(params).is_file():
+                raise ConfigError(f'params file not found: {params}')
+            values = load_yaml_params(str(params), 'vo_node')
+        else:
+            values = dict(params)
+        cfg, _node = split_params(values)
+    if overrides:
+        names = {f.name for f in dataclasses.fields(VoConfig)}
+        unknown = sorted(set(overrides) - names)
+        if unknown:
+            raise ConfigError(f'unknown core parameter(s): {unknown}')
+        cfg = VoConfig.from_mapping({**dataclasses.asdict(cfg), **dict(overrides)})
+    return cfg.validate()
+
+
+# ============================================================================ topics
+def _topic_counts(bag: Path) -> dict[str, tuple[str, int]]:
+    """topic -> (message type, message count) of a bag."""
+    from rosbags.rosbag2 import Reader
+    out: dict[str, tuple[str, int]] = {}
+    with Reader(bag) as reader:
+        for c in reader.connections:
+            typ, n = out.get(c.topic, (c.msgtype, 0))
+            out[c.topic] = (typ, n + int(c.msgcount))
+    return out
+
+
+def select_topics(topics: Mapping[str, str], image_topic: str | None = None,
+                  info_topic: str | None = None, gt_topic: str | None = None
+                  ) -> tuple[str, str, str | None]:
+    """(image topic, CameraInfo topic, ground-truth topic or None) of a bag's
+    ``{topic: msgtype}``; explicit choices are checked.
+
+    Raises:
+        RunError: no (or a wrongly typed) image or CameraInfo topic, missing --gt-topic.
+    """
+    listing = ', '.join(f'{t} [{m}]' for t, m in topics.items()) or 'none'
+    if image_topic is None:
+        raw = [t for t, m in topics.items() if m == IMAGE]
+        comp = [t for t, m in topics.items() if m == COMPRESSED_IMAGE]
+        if not raw and not comp:
+            raise RunError(f'no {IMAGE} or {COMPRESSED_IMAGE} topic in the bag (topics: '
+                           f'{listing})')
+        image_topic = (raw or comp)[0]
+    elif topics.get(image_topic) not in (IMAGE, COMPRESSED_IMAGE):
+        raise RunError(f'--image-topic {image_topic}: not an Image/CompressedImage topic of '
+                       f'the bag (topics: {listing})')
+    if info_topic is None:
+        infos = [t for t, m in topics.items() if m == CAMERA_INFO]
+        if not infos:
+            raise RunError(f'no {CAMERA_INFO} topic in the bag (topics: {listing})')
+        base = image_topic.removesuffix('/compressed').rsplit('/', 1)[0]
+        info_topic = next((t for t in infos if t == f'{base}/camera_info'), infos[0])
+    elif topics.get(info_topic) != CAMERA_INFO:
+        raise RunError(f'--info-topic {info_topic}: not a CameraInfo topic of the bag '
+                       f'(topics: {listing})')
+    if gt_topic is None:
+        gt_topic = GT_TOPIC if GT_TOPIC in topics else None
+    elif gt_topic not in topics:
+        raise RunError(f'--gt-topic {gt_topic}: not in the bag (topics: {listing})')
+    return image_topic, info_topic, gt_topic
+
+
+# ============================================================================ run
+def _pose_at(gt_ns: np.ndarray, gt_T: np.ndarray, stamp_ns: int,
+             tol_ns: int) -> np.ndarray | None:
+    if gt_ns.size == 0:
+        return None
+    j = int(np.argmin(np.abs(gt_ns - stamp_ns)))
+    return gt_T[j] if abs(int(gt_ns[j]) - stamp_ns) <= tol_ns else None
+
+
+def run_bag(bag: str | Path,
+            params: str | Path | Mapping[str, Any] | VoConfig | None = None,
+            overrides: Mapping[str, Any] | None = None, *,
+            image_topic: str | None = None, info_topic: str | None = None,
+            gt_topic: str | None = None, limit: int | None = None,
+            gt_bootstrap: bool = False, out_tum: str | Path | None = None,
+            stats_csv: str | Path | None = None, progress: bool = False,
+            max_time_diff_s: float = 0.01, seed: int = 0) -> RunSummary:
+    """Run :class:`ekf_vo.core.pipeline.VisualOdometry` on a bag (see the module docstring).
+
+    Args:
+        bag: rosbag2 directory (or single .mcap/.db3 file).
+        params: params YAML path, flat vo_node parameter mapping, VoConfig or None.
+        overrides: core parameter -> value, applied last.
+        image_topic, info_topic, gt_topic: override the automatic topic choice.
+        limit: feed at most this many images to the core.
+        gt_bootstrap: pass the ground truth at the image stamp as ``known_T_world_cam``
+            while the state is ``initialising``.
+        out_tum: write the trajectory (ok frames) here, TUM format.
+        stats_csv: write per-frame statistics here.
+        progress: tqdm progress bar on stderr.
+        max_time_diff_s: association tolerance of the evaluation and of the ground-truth
+            lookup for ``gt_bootstrap`` [s].
+        seed: RNG seed of the core.
+
+    Returns:
+        :class:`RunSummary`.
+
+    Raises:
+        RunError: missing bag or topics, ``gt_bootstrap`` without ground truth.
+        ConfigError: bad parameters.
+    """
+    from ..core.camera import CameraModelError, PinholeCamera
+    from ..core.pipeline import TrackingState, VisualOdometry
+    from ..ros.conversions import (ConversionError, camera_info_to_dict, compressed_to_gray,
+                                   image_to_gray, stamp_to_ns, validate_camera_info)
+    from .bagio import iter_bag, read_ground_truth
+
+    bag = Path(bag)
+    if not bag.exists():
+        raise RunError(f'bag not found: {bag}')
+    cfg = make_config(params, overrides)
+    try:
+        counts = _topic_counts(bag)
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several types for a bad bag
+        raise RunError(f'cannot open bag {bag}: {exc}') from exc
+    image_topic, info_topic, gt_topic = select_topics(
+        {t: m for t, (m, _) in counts.items()}, image_topic, info_topic, gt_topic)
+    image_type = counts[image_topic][0]
+    if gt_bootstrap and gt_topic is None:
+        raise RunError('--gt-bootstrap needs ground truth: the bag has no '
+                       f'{GT_TOPIC} (give --gt-topic)')
+    gt_ns, gt_T = np.zeros(0, np.int64), np.zeros((0, 4, 4))
+    if gt_topic is not None:
+        gt_ns, gt_T = read_ground_truth(bag, gt_topic)
+    tol_ns = int(round(max_time_diff_s * 1e9))
+
+    summary = RunSummary(str(bag), image_topic, info_topic, gt_topic, cfg,
+                         gt_bootstrap=gt_bootstrap)
+    n_images = counts[image_topic][1]
+    total = n_images if limit is None else min(n_images, int(limit))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=total, unit='frame', desc=f'ekf-vo-run {bag.name}', file=sys.stderr)
+
+    vo: VisualOdometry | None = None
+    camera: PinholeCamera | None = None
+    stamps_s: list[float] = []
+    poses: list[np.ndarray] = []
+    warned_info = False
+    t0 = time.perf_counter()
+    try:
+        for topic, msgtype, log_ns, msg in iter_bag(bag, [image_topic, info_topic]):
+            if topic == info_topic:
+                try:
+                    info = camera_info_to_dict(msg)
+                    validate_camera_info(info)
+                    new_cam = PinholeCamera.from_camera_info(info)
+                except (ConversionError, CameraModelError) as exc:
+                    if not warned_info:
+                        logger.warning('unusable CameraInfo on %s: %s', info_topic, exc)
+                        warned_info = True
+                    continue
+                if not new_cam.same_as(camera):
+                    if vo is not None:
+                        summary.n_resets += vo.n_resets
+                        summary.n_camera_changes += 1
+                        logger.warning('calibration changed at %d ns: restarting the VO',
+                                       log_ns)
+                    camera = new_cam
+                    vo = VisualOdometry(cfg, camera, seed=seed)
+                continue
+            if limit is not None and summary.frames >= limit:
+                break
+            if bar is not None:
+                bar.update(1)
+            if vo is None:
+                summary.frames_skipped += 1
+                continue
+            try:
+                gray = (compressed_to_gray(msg) if msgtype == COMPRESSED_IMAGE
+                        else image_to_gray(msg))
+                stamp_ns = stamp_to_ns(msg.header.stamp)
+            except ConversionError as exc:
+                logger.warning('skipping image at %d ns: %s', log_ns, exc)
+                summary.frames_skipped += 1
+                continue
+            known = None
+            if gt_bootstrap and vo.state == TrackingState.INITIALISING:
+                known = _pose_at(gt_ns, gt_T, stamp_ns, tol_ns)
+            res = vo.process(gray, stamp_ns, known_T_world_cam=known)
+            summary.frames += 1
+            summary.frame_stats.append(FrameStats(
+                stamp_ns, res.state.value, bool(res.ok), int(res.n_tracks),
+                int(res.n_matches), int(res.n_inliers), int(res.n_new_points),
+                int(res.map_size), dict(res.timings_ms), res.message))
+            if res.ok and res.T_world_cam is not None:
+                stamps_s.append(stamp_ns * 1e-9)
+                poses.append(np.asarray(res.T_world_cam, dtype=np.float64))
+    finally:
+        if bar is not None:
+            bar.close()
+    summary.wall_s = time.perf_counter() - t0
+    if vo is not None:
+        summary.n_resets += vo.n_resets
+    if summary.frames == 0:
+        why = ('no CameraInfo before/among the images' if camera is None
+               else 'no decodable image')
+        raise RunError(f'{bag}: no image was processed ({why}; image topic {image_topic} '
+                       f'[{image_type}], CameraInfo topic {info_topic})')
+
+    summary.frames_ok = len(poses)
+    summary.pct_tracked = 100.0 * summary.frames_ok / summary.frames
+    summary.fps = summary.frames / max(summary.wall_s, 1e-9)
+    stages: dict[str, list[float]] = {}
+    for row in summary.frame_stats:
+        for key, ms in row.timings_ms.items():
+            stages.setdefault(key, []).append(float(ms))
+    summary.stage_ms = {k: float(np.mean(v)) for k, v in stages.items()}
+    core_s = 1e-3 * sum(stages.get('total', []))
+    summary.core_fps = summary.frames / core_s if core_s > 0 else math.nan
+    summary.est_stamps_s = np.asarray(stamps_s, dtype=np.float64)
+    summary.est_T_world_cam = (np.stack(poses) if poses else np.zeros((0, 4, 4)))
+
+    if out_tum is not None:
+        from .trajectory_io import write_tum
+        write_tum(out_tum, summary.est_stamps_s, summary.est_T_world_cam)
+    if stats_csv is not None:
+        write_stats_csv(stats_csv, summary.frame_stats)
+    if gt_topic is not None:
+        _evaluate_into(summary, gt_ns, gt_T, max_time_diff_s)
+    return summary
+
+
+def _evaluate_into(summary: RunSummary, gt_ns: np.ndarray, gt_T: np.ndarray,
+                   max_time_diff_s: float) -> None:
+    from .evaluate import EvaluationError, evaluate
+    if gt_ns.size == 0:
+        summary.eval_error = f'ground-truth topic {summary.gt_topic} has no messages'
+        return
+    if summary.frames_ok == 0:
+        summary.eval_error = 'no tracked frame to evaluate'
+        return
+    try:
+        summary.eval = evaluate(gt_ns * 1e-9, gt_T, summary.est_stamps_s,
+                                summary.est_T_world_cam, max_time_diff_s=max_time_diff_s,
+                                n_frames_total=summary.frames)
+    except EvaluationError as exc:
+        summary.eval_error = str(exc)
+
+
+def write_stats_csv(path: str | Path, rows: Sequence[FrameStats]) -> None:
+    """Per-frame CSV: :data:`STATS_COLUMNS`, ``ms_<stage>`` for every stage seen (empty when
+    a frame did not run it), ``message``."""
+    stages: list[str] = []
+    for row in rows:
+        for key in row.timings_ms:
+            if key not in stages:
+                stages.append(key)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open('w', newline='', encoding='utf-8') as f:
+        w = csv.writer(f)
+        w.writerow([*STATS_COLUMNS, *(f'ms_{s}' for s in stages), 'message'])
+        for r in rows:
+            w.writerow([r.stamp_ns, f'{r.stamp_ns * 1e-9:.9f}', r.state, int(r.ok), r.n_tracks,
+                        r.n_matches, r.n_inliers, r.n_new_points, r.map_size,
+                        *(f'{r.timings_ms[s]:.3f}' if s in r.timings_ms else ''
+                          for s in stages), r.message])
+
+
+def format_summary(s: RunSummary) -> str:
+    """Human-readable report of a run."""
+    lines = [
+        f'bag            {s.bag}',
+        f'topics         {s.image_topic}, {s.info_topic}, ground truth: {s.gt_topic or "none"}',
+        f'frames         {s.frames} processed, {s.frames_skipped} skipped, '
+        f'{s.frames_ok} tracked ({s.pct_tracked:.1f} %)',
+        f'speed          {s.fps:.1f} frames/s overall, {s.core_fps:.1f} frames/s core',
+        'stage ms       ' + ', '.join(f'{k} {v:.2f}' for k, v in s.stage_ms.items()),
+        f'resets         {s.n_resets} (calibration changes: {s.n_camera_changes})',
+    ]
+    if s.gt_bootstrap:
+        lines.append('bootstrap      ground truth (known_T_world_cam while initialising)')
+    if s.eval is not None:
+        from .evaluate import format_table
+        lines += ['', format_table(s.eval)]
+    elif s.eval_error:
+        lines.append(f'evaluation     failed: {s.eval_error}')
+    return '\n'.join(lines)
+
+
+# ============================================================================ CLI
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog='ekf-vo-run', description='Run ekf_vo offline on a rosbag2 bag (no ROS needed), '
+        'write the trajectory (TUM) and evaluate it against the ground truth in the bag.')
+    p.add_argument('bag', type=Path, help='rosbag2 directory (MCAP or sqlite3)')
+    p.add_argument('-o', '--output', type=Path, required=True, metavar='EST.tum',
+                   help='estimated trajectory (camera optical frame, ok frames), TUM format')
+    p.add_argument('--params', type=Path, default=None,
+                   help='ROS params YAML with a "vo_node: ros__parameters:" section '
+                   '(default: the built-in defaults = config/ekf_vo.yaml)')
+    p.add_argument('--set', dest='overrides', action='append', default=[],
+                   metavar='NAME=VALUE', nargs='+', help='override core parameters')
+    p.add_argument('--image-topic', default=None)
+    p.add_argument('--info-topic', default=None)
+    p.add_argument('--gt-topic', default=None,
+                   help=f'ground-truth PoseStamped topic (default {GT_TOPIC} when present)')
+    p.add_argument('--stats', type=Path, default=None, metavar='stats.csv',
+                   help='per-frame statistics CSV')
+    p.add_argument('--json', type=Path, default=None, metavar='summary.json',
+                   help='summary and evaluation as JSON')
+    p.add_argument('--limit', type=int, default=None, metavar='N',
+                   help='process at most N images')
+    p.add_argument('--gt-bootstrap', action='store_true',
+                   help='give the ground-truth pose to the bootstrap (papers\' protocol)')
+    p.add_argument('--max-time-diff', type=float, default=0.01, metavar='S',
+                   help='stamp association tolerance for the evaluation [s]')
+    p.add_argument('--seed', type=int, default=0, help='RNG seed of the core')
+    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar, no report')
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry point ``ekf-vo-run``; exit 0 ok, 2 bad input."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
+    if args.limit is not None and args.limit <= 0:
+        print(f'ekf-vo-run: error: --limit must be positive, got {args.limit}',
+              file=sys.stderr)
+        return 2
+    try:
+        overrides = parse_overrides([item for group in args.overrides for item in group])
+        summary = run_bag(args.bag, args.params, overrides, image_topic=args.image_topic,
+                          info_topic=args.info_topic, gt_topic=args.gt_topic,
+                          limit=args.limit, gt_bootstrap=args.gt_bootstrap,
+                          out_tum=args.output, stats_csv=args.stats,
+                          progress=not args.quiet, max_time_diff_s=args.max_time_diff,
+                          seed=args.seed)
+    except (RunError, ConfigError) as exc:
+        print(f'ekf-vo-run: error: {exc}', file=sys.stderr)
+        return 2
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(summary.to_dict(), indent=1) + '\n', encoding='utf-8')
+    if not args.quiet:
+        print(format_summary(summary))
+    elif summary.eval_error:
+        print(f'ekf-vo-run: evaluation failed: {summary.eval_error}', file=sys.stderr)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
