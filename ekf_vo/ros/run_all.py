@@ -1,12 +1,14 @@
 """vo_node and map_node in one process (`ekf_vo_nodes`): the no-launch way to run both.
 
-Both nodes share a MultiThreadedExecutor; ROS arguments (remaps, --params-file) apply to
-both, as with `ros2 run` of a composed process.
+Both nodes share one SingleThreadedExecutor: vo_node's callbacks only enqueue (its
+estimator runs on its own worker thread) and map_node is light, while rclpy's
+MultiThreadedExecutor costs enough GIL time here to make the estimator drop frames.
+ROS arguments (remaps, --params-file) apply to both, as with a composed process.
 """
 from __future__ import annotations
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from ..config import ConfigError
 from .map_node import MapNode
@@ -16,7 +18,7 @@ from .vo_node import VoNode
 def main(args: list[str] | None = None) -> None:
     rclpy.init(args=args)
     nodes = []
-    executor = MultiThreadedExecutor(num_threads=2)
+    executor = SingleThreadedExecutor()
     try:
         nodes = [VoNode(), MapNode()]
         for node in nodes:
