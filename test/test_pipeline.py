@@ -1,0 +1,99 @@
+"""The per-frame pipeline on rendered images: tracking, EPnP baseline, loss and recovery,
+bad input. Accuracy numbers live in the benchmarks; these guard behaviour with margins."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from ekf_vo.config import VoConfig
+from ekf_vo.core.camera import PinholeCamera
+from ekf_vo.core.pipeline import TrackingState, VisualOdometry
+from ekf_vo.tools.evaluate import evaluate
+from ekf_vo.tools.synth import SynthConfig, render_sequence
+
+
+@pytest.fixture(scope='module')
+def sequence():
+    cfg = SynthConfig(frames=150, seed=3, trajectory='walk')
+    frames = list(render_sequence(cfg))
+    camera = PinholeCamera(cfg.width, cfg.height, cfg.K())
+    return camera, frames
+
+
+def run(camera, frames, **overrides):
+    vo = VisualOdometry(dataclasses.replace(VoConfig(), **overrides), camera)
+    results = [vo.process(img, stamp) for stamp, img, _ in frames]
+    return vo, results
+
+
+def ate_pct(frames, results):
+    ok = [(r.stamp_ns * 1e-9, r.T_world_cam) for r in results if r.ok]
+    gt_s = np.array([s * 1e-9 for s, _, _ in frames])
+    gt_T = np.array([T for _, _, T in frames])
+    ev = evaluate(gt_s, gt_T, np.array([s for s, _ in ok]), np.array([T for _, T in ok]),
+                  n_frames_total=len(frames))
+    return ev
+
+
+@pytest.mark.parametrize('estimator', ['ekf', 'iekf', 'epnp'])
+def test_tracks_a_rendered_hand_held_sequence(sequence, estimator):
+    camera, frames = sequence
+    vo, results = run(camera, frames, estimator=estimator)
+    ev = ate_pct(frames, results)
+    assert ev.pct_tracked >= 90.0
+    assert ev.ate_sim3_pct_of_path < 3.0
+    assert vo.n_resets == 0
+    for r in results:
+        if r.ok:
+            assert np.all(np.isfinite(r.pose_cov)) and np.linalg.eigvalsh(r.pose_cov).min() > 0
+            assert np.all(np.isfinite(r.twist_cov))
+            assert set(r.timings_ms) >= {'track', 'total'}
+
+
+def test_lost_on_black_frames_then_rebootstraps_in_the_same_odom_frame(sequence):
+    camera, frames = sequence
+    black = np.zeros_like(frames[0][1])
+    vo = VisualOdometry(VoConfig(), camera)
+    results = []
+    for k, (stamp, img, _) in enumerate(frames):
+        results.append(vo.process(black if 60 <= k < 66 else img, stamp))
+    states = [r.state for r in results]
+    assert TrackingState.TRACKING in states[:60]
+    # loss is detected within max_failed_frames of the blackout and nothing is published
+    assert any(s == TrackingState.INITIALISING for s in states[60:64])
+    assert not any(r.ok for r in results[61:66])
+    assert vo.n_resets == 1
+    # tracking is back within a bounded number of good frames
+    back = next(k for k in range(66, len(results)) if results[k].ok)
+    assert back - 66 <= 20, f'recovered only {back - 66} frames after the blackout'
+    # the new map is attached to the last good pose: no jump of the odom frame
+    last_good = max(k for k in range(60) if results[k].ok)
+    jump = np.linalg.norm(results[back].T_world_cam[:3, 3] -
+                          results[last_good].T_world_cam[:3, 3])
+    step = np.median([np.linalg.norm(results[k + 1].T_world_cam[:3, 3] -
+                                     results[k].T_world_cam[:3, 3])
+                      for k in range(10, 50) if results[k].ok and results[k + 1].ok])
+    assert jump < 40 * step, f'odom jumped {jump:.3f} (median step {step:.4f})'
+
+
+def test_bad_frames_are_skipped_without_losing_the_track(sequence):
+    camera, frames = sequence
+    vo = VisualOdometry(VoConfig(), camera)
+    for stamp, img, _ in frames[:40]:
+        vo.process(img, stamp)
+    assert vo.state == TrackingState.TRACKING
+    stamp = frames[39][0]
+    assert 'not increasing' in vo.process(frames[39][1], stamp).message
+    assert 'does not match' in vo.process(frames[40][1][:100], frames[40][0]).message
+    r = vo.process(frames[40][1], frames[40][0])
+    assert r.ok and vo.state == TrackingState.TRACKING
+
+
+def test_a_long_gap_resets_instead_of_extrapolating(sequence):
+    camera, frames = sequence
+    vo = VisualOdometry(VoConfig(max_dt_s=0.5), camera)
+    for stamp, img, _ in frames[:30]:
+        vo.process(img, stamp)
+    assert vo.state == TrackingState.TRACKING
+    r = vo.process(frames[30][1], frames[30][0] + 2_000_000_000)
+    assert vo.n_resets == 1 and not r.ok
