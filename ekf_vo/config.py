@@ -31,8 +31,22 @@ def param(default: Any, doc: str, unit: str = '', lo: float | None = None,
         'choices': tuple(choices) if choices else None, 'group': group})
 
 
+class _Params:
+    """Shared behaviour of the parameter dataclasses: validation and construction."""
+
+    def validate(self):
+        """Check types and ranges; raise ConfigError naming the parameter."""
+        validate_dataclass(self)
+        return self
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], strict: bool = True):
+        """Build from a dict (e.g. the `ros__parameters` of the YAML) and validate."""
+        return from_mapping(cls, values, strict).validate()
+
+
 @dataclass
-class VoConfig:
+class VoConfig(_Params):
     """Parameters of the estimation core (camera-agnostic; units are SI or pixels).
 
     Monocular scale is arbitrary: "m" below means map units, which are metres only when
@@ -156,19 +170,9 @@ class VoConfig:
         10.0, 'Declare tracking lost when the position std exceeds this.', 'm', 1e-3, 1e6,
         group='quality')
 
-    def validate(self) -> 'VoConfig':
-        """Check types and ranges; raise ConfigError naming the parameter."""
-        validate_dataclass(self)
-        return self
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any], strict: bool = True) -> 'VoConfig':
-        """Build from a dict (e.g. the `ros__parameters` of the YAML)."""
-        return from_mapping(cls, values, strict).validate()
-
 
 @dataclass
-class NodeConfig:
+class NodeConfig(_Params):
     """Parameters of the ROS edge (vo_node); the core never sees these."""
 
     image_transport: str = param('raw', 'Subscribe `image` (raw) or `image/compressed`.',
@@ -204,27 +208,14 @@ class NodeConfig:
             raise ConfigError(f'T_base_cam_xyzw must be a unit quaternion (norm {norm:.3f})')
         return self
 
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any], strict: bool = True) -> 'NodeConfig':
-        return from_mapping(cls, values, strict).validate()
-
 
 @dataclass
-class MapNodeConfig:
+class MapNodeConfig(_Params):
     """Parameters of map_node."""
 
     publish_rate_hz: float = param(1.0, 'Rate of `map_points` (PointCloud2).', 'Hz', 0.01,
                                    100.0, group='map_node')
     odom_frame: str = param('odom', 'frame_id of the published cloud.', group='map_node')
-
-    def validate(self) -> 'MapNodeConfig':
-        validate_dataclass(self)
-        return self
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any], strict: bool = True
-                     ) -> 'MapNodeConfig':
-        return from_mapping(cls, values, strict).validate()
 
 
 # ---------------------------------------------------------------- generic helpers
