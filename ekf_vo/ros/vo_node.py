@@ -42,6 +42,8 @@ from .params import declare_from_dataclass, install_validation
 TIME_RESET_S = 1.0
 #: stamps further than this ahead of the last one are treated as corrupt
 FUTURE_JUMP_S = 3600.0
+#: each kind of rejected input is logged at most this often (and always counted)
+WARN_PERIOD_S = 5.0
 
 
 class VoNode(Node):
@@ -72,6 +74,7 @@ class VoNode(Node):
         self._last_status_time = 0.0
         self._last_result = None
         self.counters = collections.Counter()
+        self._last_warned: dict[str, float] = {}
 
         sub_qos = qos_profile_sensor_data
         if self.node_cfg.reliable_qos:
@@ -118,10 +121,14 @@ class VoNode(Node):
 
     # ------------------------------------------------------------------ inputs
     def _warn(self, key: str, text: str) -> None:
-        """Count a rejected input and log it at most every 5 s per kind."""
+        """Count a rejected input and log it at most every 5 s per kind.
+
+        (rclpy's throttle is per call site, which would let one kind hide another.)"""
         self.counters[key] += 1
-        self.get_logger().warning(f'{text} [{key}: {self.counters[key]}]',
-                                  throttle_duration_sec=5.0)
+        now = time.monotonic()
+        if now - self._last_warned.get(key, -1e9) >= WARN_PERIOD_S:
+            self._last_warned[key] = now
+            self.get_logger().warning(f'{text} [{key}: {self.counters[key]} so far]')
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
@@ -157,15 +164,15 @@ class VoNode(Node):
         except conv.ConversionError as exc:
             self._warn('bad_image', f'{what} rejected: {exc}')
             return
-        frame_id = msg.header.frame_id
         with self._queue_cv:
+            # stamps are checked in arrival order, before the queue may drop frames
+            verdict = self._check_stamp(stamp_ns)
+            if verdict is None:
+                return
             if len(self._queue) >= self.node_cfg.queue_size:
                 self._queue.popleft()
-                self.counters['dropped_behind'] += 1
-                self.get_logger().warning(
-                    f'estimator behind: dropped the oldest frame '
-                    f'[{self.counters["dropped_behind"]} so far]', throttle_duration_sec=5.0)
-            self._queue.append((stamp_ns, gray, frame_id, received))
+                self._warn('dropped_behind', 'estimator behind: dropped the oldest frame')
+            self._queue.append((stamp_ns, gray, verdict == 'reset', received))
             self._queue_cv.notify()
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
@@ -184,8 +191,11 @@ class VoNode(Node):
                     self._queue_cv.wait(timeout=0.2)
                 if self._stop.is_set():
                     return
-                stamp_ns, gray, frame_id, received = self._queue.popleft()
+                stamp_ns, gray, time_reset, received = self._queue.popleft()
             try:
+                if time_reset:
+                    with self._lock:
+                        self._reset_estimator('time went backwards')
                 self._process(stamp_ns, gray, received)
             except Exception as exc:  # keep the node alive; say what happened, reset
                 self.counters['internal_errors'] += 1
@@ -194,32 +204,32 @@ class VoNode(Node):
                 with self._lock:
                     self.vo = None
 
-    def _check_stamp(self, stamp_ns: int) -> bool:
-        """Drop duplicate / out-of-order / far-future stamps; reset when time restarts."""
+    def _check_stamp(self, stamp_ns: int) -> str | None:
+        """Verdict on an image stamp against the last accepted one (arrival order):
+        'ok', 'reset' (time went backwards: looping bag, sim reset) or None (dropped:
+        duplicate, slightly out of order, or a far-future jump)."""
         last = self._last_stamp_ns
-        if last is None:
-            return True
-        if stamp_ns == last:
-            self._warn('duplicate_stamp', 'duplicate image stamp: dropped')
-            return False
-        if stamp_ns < last:
-            if (last - stamp_ns) * 1e-9 > TIME_RESET_S:
-                self.get_logger().warning('time went backwards (looping bag or sim reset): '
-                                          'resetting')
-                self.counters['time_resets'] += 1
-                self._reset_estimator('time went backwards')
-                return True
-            self._warn('out_of_order', 'out-of-order image stamp: dropped')
-            return False
-        if (stamp_ns - last) * 1e-9 > FUTURE_JUMP_S:
-            self._warn('future_stamp', 'image stamp jumps more than 1 h ahead: dropped')
-            return False
-        return True
+        verdict = 'ok'
+        if last is not None:
+            if stamp_ns == last:
+                self._warn('duplicate_stamp', 'duplicate image stamp: dropped')
+                return None
+            if stamp_ns < last:
+                if (last - stamp_ns) * 1e-9 <= TIME_RESET_S:
+                    self._warn('out_of_order', 'out-of-order image stamp: dropped')
+                    return None
+                self._warn('time_resets', 'time went backwards (looping bag or sim reset): '
+                           'resetting')
+                verdict = 'reset'
+            elif (stamp_ns - last) * 1e-9 > FUTURE_JUMP_S:
+                self._warn('future_stamp', 'image stamp jumps more than 1 h ahead: dropped')
+                return None
+        self._last_stamp_ns = stamp_ns
+        return verdict
 
     def _reset_estimator(self, reason: str) -> None:
         if self.vo is not None:
             self.vo.reset(reason)
-        self._last_stamp_ns = None
         self._path.poses.clear()
         self._publish_removals(list(self._published_ids))
 
@@ -232,7 +242,6 @@ class VoNode(Node):
                 self._reset_estimator('~/reset called')
             if self.vo is None and camera is not None:
                 self.vo = VisualOdometry(cfg, camera)
-                self._last_stamp_ns = None
                 self._publish_removals(list(self._published_ids))
             vo = self.vo
         if vo is None:
@@ -241,9 +250,6 @@ class VoNode(Node):
             self._warn('size_mismatch', f'image {gray.shape[1]}x{gray.shape[0]} does not match '
                        f'CameraInfo {camera.width}x{camera.height}: dropped')
             return
-        if not self._check_stamp(stamp_ns):
-            return
-        self._last_stamp_ns = stamp_ns
         result = vo.process(gray, stamp_ns)
         self.counters['processed'] += 1
         self._frame_times.append(time.perf_counter())

@@ -1,0 +1,150 @@
+"""Fault injection over DDS: vo_node in its own process sees each kind of bad input, then
+good frames. It must stay alive, publish no NaN / non-positive covariance, count and log
+each fault, and (re)gain tracking within a bounded number of good frames."""
+from __future__ import annotations
+
+import array
+
+import cv2
+import numpy as np
+import pytest
+from sensor_msgs.msg import CameraInfo, Image
+
+from ekf_vo.bench.ros_harness import Feeder, Harness, NodeProcess, domain_id_for
+from ekf_vo.bench.speed import load_demo_frames
+from ekf_vo.ros import conversions as conv
+
+pytestmark = pytest.mark.ros
+DOMAIN = domain_id_for(__name__)
+RATE_HZ = 20.0
+#: good frames within which odometry must be back after a fault that resets tracking
+RECOVERY_FRAMES = 20
+
+
+def raw_image(stamp: int, width: int, height: int, encoding: str, step: int,
+              data: bytes) -> Image:
+    msg = Image()
+    msg.header.stamp = conv.ns_to_stamp(stamp)
+    msg.header.frame_id = 'camera_optical'
+    msg.width, msg.height, msg.encoding, msg.step = width, height, encoding, step
+    msg.data = array.array('B', data)
+    return msg
+
+
+@pytest.fixture(scope='module')
+def demo():
+    info, frames = load_demo_frames()
+    return info, frames
+
+
+def test_faults_then_good_frames(tmp_path, demo):
+    info, frames = demo
+    vo = NodeProcess('ekf_vo.ros.vo_node', [
+        '-r', 'image:=/cam/image', '-r', 'camera_info:=/cam/camera_info',
+        '-r', 'odom:=/odom', '-p', 'reliable_qos:=true'], DOMAIN, tmp_path / 'vo.log')
+    vo.wait_for_output('vo_node ready')
+    h = Harness(DOMAIN)
+    try:
+        feed = Feeder(h, info)
+        feed.wait_connected()
+        good = lambda k, s, g: conv.numpy_to_image(g, 'mono8', s, 'camera_optical')  # noqa
+        dt = frames[1][0] - frames[0][0]
+
+        def odom_after(stamps):
+            got = set(feed.odom_wall)
+            return [s for s in stamps if s in got]
+
+        # A. images before any CameraInfo
+        for stamp, gray in frames[:3]:
+            feed.img_pub.publish(good(0, stamp, gray))
+        h.spin_for(0.5)
+        # B. good frames -> tracking
+        stamps_b = feed.publish(frames[3:40], good, RATE_HZ)
+        feed.wait_last(stamps_b[-1])
+        assert odom_after(stamps_b), 'no tracking on good frames'
+
+        # C. malformed inputs between good frames (none of them should lose the track)
+        s = frames[39][0]
+        w, hgt = info['width'], info['height']
+        bad = [raw_image(s + dt // 5, w, hgt, 'mono8', w - 1, bytes(w * hgt)),   # step
+               raw_image(s + 2 * dt // 5, w, hgt, 'mono8', w, bytes(100)),      # truncated
+               raw_image(s + 3 * dt // 5, w, hgt, 'yuv422_yuy2', 2 * w,
+                         bytes(2 * w * hgt)),                                    # encoding
+               raw_image(s + 4 * dt // 5, 0, 0, 'mono8', 0, b'')]                # zero size
+        # paced: a burst larger than the subscription depth (5) is DDS's to drop
+        for msg in bad:
+            feed.img_pub.publish(msg)
+            h.spin_for(0.05)
+        nan_info = CameraInfo()
+        nan_info.width, nan_info.height = w, hgt
+        nan_info.k = [float('nan'), 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0]
+        feed.info_pub.publish(nan_info)
+        h.spin_for(0.05)
+        zero_info = CameraInfo()
+        zero_info.width, zero_info.height = w, hgt
+        feed.info_pub.publish(zero_info)
+        # duplicate, out-of-order and far-future stamps
+        for stamp, gray in ((frames[39][0], frames[39][1]),          # duplicate
+                            (frames[30][0] + 1, frames[30][1]),      # out of order
+                            (frames[39][0] + 10 ** 13, frames[39][1])):  # far future
+            h.spin_for(0.05)
+            feed.img_pub.publish(good(0, stamp, gray))
+        h.spin_for(0.3)
+        stamps_c = feed.publish(frames[40:60], good, RATE_HZ)
+        feed.wait_last(stamps_c[-1])
+        assert len(odom_after(stamps_c)) >= 0.9 * len(stamps_c), \
+            'malformed input between good frames cost tracking'
+
+        # D. lens cap: black frames, then good frames -> lost, re-bootstrap
+        black = [(st, np.zeros_like(g)) for st, g in frames[60:66]]
+        feed.publish(black, good, RATE_HZ)
+        stamps_d = feed.publish(frames[66:110], good, RATE_HZ)
+        feed.wait_last(stamps_d[-1])
+        got_d = odom_after(stamps_d)
+        assert got_d and stamps_d.index(got_d[0]) <= RECOVERY_FRAMES
+
+        # E. the camera driver restarts at another resolution (CameraInfo changes too)
+        half = dict(info, width=w // 2, height=hgt // 2, K=info['K'] * [[0.5], [0.5], [1]])
+        feed_half = [(st, cv2.resize(g, (w // 2, hgt // 2), interpolation=cv2.INTER_AREA))
+                     for st, g in frames[110:160]]
+        feed.info = half
+        stamps_e = feed.publish(feed_half, good, RATE_HZ)
+        feed.wait_last(stamps_e[-1])
+        got_e = odom_after(stamps_e)
+        assert got_e and stamps_e.index(got_e[0]) <= RECOVERY_FRAMES
+
+        # F. time goes backwards (looping bag): reset, re-bootstrap at full resolution
+        feed.info = info
+        stamps_f = feed.publish(frames[0:50], good, RATE_HZ)
+        feed.wait_last(stamps_f[-1])
+        got_f = [m for m in feed.odom[-60:]]
+        assert any(conv.stamp_to_ns(m.header.stamp) in set(stamps_f) for m in got_f)
+        first_f = min(stamps_f.index(conv.stamp_to_ns(m.header.stamp)) for m in got_f
+                      if conv.stamp_to_ns(m.header.stamp) in set(stamps_f))
+        assert first_f <= RECOVERY_FRAMES
+
+        # never NaN, never a zero / indefinite covariance
+        for m in feed.odom:
+            C = np.asarray(m.pose.covariance).reshape(6, 6)
+            assert np.all(np.isfinite(C)) and np.linalg.eigvalsh(C).min() > 0
+            p = m.pose.pose.position
+            assert np.all(np.isfinite([p.x, p.y, p.z]))
+
+        h.spin_until(lambda: feed.status and any(
+            kv.key == 'time_resets' for kv in feed.status[-1].status[0].values), 3.0)
+        values = {kv.key: kv.value for kv in feed.status[-1].status[0].values}
+        assert int(values.get('no_camera_info', 0)) >= 3
+        assert int(values.get('bad_image', 0)) >= 4
+        assert int(values.get('bad_camera_info', 0)) >= 2
+        assert int(values.get('duplicate_stamp', 0)) >= 1
+        assert int(values.get('out_of_order', 0)) >= 1
+        assert int(values.get('future_stamp', 0)) >= 1
+        assert int(values.get('time_resets', 0)) >= 1
+        assert vo.alive()
+        log = vo.output()
+        for text in ('before any valid CameraInfo', 'image rejected', 'CameraInfo rejected',
+                     'time went backwards'):
+            assert text in log, f'no log line for: {text}'
+    finally:
+        h.close()
+        vo.stop()
