@@ -166,6 +166,10 @@ class VoConfig(_Params):
     max_failed_frames: int = param(
         3, 'Declare tracking lost (and re-bootstrap) after this many failed frames.',
         'frames', 1, 1000, group='quality')
+    max_nis_per_dof: float = param(
+        30.0, 'A frame fails when the update NIS per degree of freedom exceeds this '
+        '(innovations inconsistent with the covariance; 1 is expected).', '', 1.0, 1e6,
+        group='quality')
     max_position_sigma_m: float = param(
         10.0, 'Declare tracking lost when the position std exceeds this.', 'm', 1e-3, 1e6,
         group='quality')

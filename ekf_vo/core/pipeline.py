@@ -62,6 +62,7 @@ class FrameResult:
     n_matches: int = 0                      #: tracks with a landmark used in the update
     n_inliers: int = 0
     n_new_points: int = 0
+    nis_per_dof: float = 0.0               #: normalised innovation squared / (2 n)
     map_size: int = 0
     bootstrapped: bool = False              #: this frame completed a (re-)bootstrap
     message: str = ''                       #: why not ok / what happened
@@ -289,9 +290,16 @@ class VisualOdometry:
 
         # ---- tracking quality
         pos_sigma = float(np.sqrt(np.max(np.diag(self.ekf.P)[POS])))
+        upd = self.ekf.last_update
+        nis_per_dof = upd.nis / (2 * upd.n_used) if upd.n_used else 0.0
+        res.nis_per_dof = nis_per_dof
         if res.n_inliers < c.min_tracking_inliers:
             self._failed_frames += 1
             res.message = f'only {res.n_inliers} inliers'
+        elif nis_per_dof > c.max_nis_per_dof:
+            # the innovations disagree with the filter's own covariance: inconsistent
+            self._failed_frames += 1
+            res.message = f'innovation out of bounds (NIS per dof {nis_per_dof:.1f})'
         else:
             self._failed_frames = 0
         if self._failed_frames >= c.max_failed_frames or pos_sigma > c.max_position_sigma_m:
