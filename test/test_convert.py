@@ -356,3 +356,26 @@ def test_convert_then_run_kitti06(tmp_path: Path) -> None:
     assert summary.pct_tracked >= 95.0
     assert summary.eval is not None, summary.eval_error
     assert summary.eval.ate_sim3_pct_of_path <= 2.0
+
+
+@pytest.mark.parametrize('fmt', ['kitti', 'tum', 'folder'])
+def test_convert_then_run_each_format(tmp_path: Path, fmt: str) -> None:
+    """Every format's small fixture (120 frames, 320x240) converts and then tracks
+    (the bootstrap needs ~20 frames of parallax at this size)."""
+    cfg = _small_cfg(frames=120)
+    seq = list(synth.render_sequence(cfg))
+    kwargs = {}
+    if fmt == 'kitti':
+        src = make_kitti(tmp_path, seq)
+    elif fmt == 'tum':
+        src = make_tum(tmp_path, seq)
+        K = cfg.K()
+        kwargs['camera'] = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+    else:
+        src = make_folder(tmp_path, seq)
+    convert.convert(fmt, src, tmp_path / 'bag', **kwargs)
+    summary = run_bag(tmp_path / 'bag')
+    assert summary.frames == 120
+    assert summary.pct_tracked >= 80.0
+    assert summary.eval is not None, summary.eval_error
+    assert summary.eval.ate_sim3_pct_of_path < 5.0
