@@ -199,6 +199,8 @@ class NodeConfig(_Params):
     publish_path: bool = param(True, 'Publish ~/path (nav_msgs/Path) for RViz.', group='ros')
     max_path_length: int = param(5000, 'Poses kept in ~/path.', 'count', 1, 1000000,
                                  group='ros')
+    path_rate_hz: float = param(2.0, 'Rate at which ~/path is republished.', 'Hz', 0.01,
+                                100.0, group='ros')
     landmarks_every_n_frames: int = param(
         5, 'Publish the landmark update for map_node every n frames.', 'frames', 1, 1000,
         group='ros')

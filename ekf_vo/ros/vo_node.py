@@ -26,8 +26,7 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 
@@ -72,6 +71,7 @@ class VoNode(Node):
         self._latencies_ms: collections.deque = collections.deque(maxlen=1000)
         self._frame_times: collections.deque = collections.deque(maxlen=60)
         self._last_status_time = 0.0
+        self._last_path_publish = 0.0
         self._last_result = None
         self.counters = collections.Counter()
         self._last_warned: dict[str, float] = {}
@@ -96,9 +96,6 @@ class VoNode(Node):
         self.status_pub = self.create_publisher(DiagnosticArray, '~/status', reliable)
         self.debug_pub = self.create_publisher(Image, '~/debug_image', qos_profile_sensor_data)
         self.create_service(Trigger, '~/reset', self._on_reset)
-        # the last status is kept for late subscribers
-        self._status_qos_latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._worker = threading.Thread(target=self._work, name='vo_worker', daemon=True)
         self._worker.start()
         self.get_logger().info(
@@ -292,7 +289,11 @@ class VoNode(Node):
             self._path.poses.append(pose)
             if len(self._path.poses) > self.node_cfg.max_path_length:
                 del self._path.poses[0]
-            self.path_pub.publish(self._path)
+            # serialising a long Path costs O(length): publish it at a bounded rate
+            now = time.monotonic()
+            if now - self._last_path_publish >= 1.0 / self.node_cfg.path_rate_hz:
+                self._last_path_publish = now
+                self.path_pub.publish(self._path)
 
     def _publish_landmarks(self, vo: VisualOdometry, stamp_ns: int) -> None:
         changes = vo.map.pop_changes()
