@@ -175,3 +175,16 @@ def test_pose_covariance_maps_quaternion_to_rotation_vector():
     assert np.allclose(cov[3:, 3:], np.eye(3) * 0.02 ** 2, rtol=1e-6)
     assert np.allclose(cov[:3, :3], np.eye(3) * 0.02 ** 2, rtol=1e-6)
     assert np.allclose(cov[:3, 3:], 0)
+
+
+def test_robust_update_with_no_supported_hypothesis_does_not_raise():
+    """Every match an outlier: no hypothesis has support; nothing is used, no exception."""
+    from ekf_vo.core.ransac import robust_update
+    ekf, X = _random_filter(13)
+    px, _, _ = ekf.observe(X)
+    rng = np.random.default_rng(0)
+    z = px + rng.uniform(200, 400, px.shape) * rng.choice([-1, 1], px.shape)
+    x_before = ekf.x.copy()
+    res = robust_update(ekf, z, X, 1.0, rng, one_point=True, inlier_px=2.0)
+    assert res.n_inliers == 0 and res.n_hypotheses > 0
+    assert np.allclose(ekf.x, x_before)

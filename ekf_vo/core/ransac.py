@@ -90,9 +90,11 @@ def robust_update(ekf: CameraEKF, z_px: np.ndarray, X_world: np.ndarray,
                 eps = best_support / len(candidates)
                 if eps >= 1.0:
                     break
-                # adaptive hypothesis count for m = 1 (Civera 2010, eq. 19)
-                n_hyp = min(max_hypotheses, int(np.ceil(
-                    np.log(1.0 - probability) / np.log(max(1e-12, 1.0 - eps)))))
+                if eps > 0.0:
+                    # adaptive hypothesis count for m = 1 (Civera 2010, eq. 19); with no
+                    # support yet (eps = 0) the bound stays at max_hypotheses
+                    n_hyp = min(max_hypotheses, int(np.ceil(
+                        np.log(1.0 - probability) / np.log(1.0 - eps))))
         result.n_hypotheses = tried
     else:
         # plain innovation gate on the prior

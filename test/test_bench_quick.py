@@ -1,0 +1,108 @@
+"""The benchmark in quick mode (what `make bench-quick` runs), end to end, ~2-3 minutes.
+
+Checks that the report, the JSON and the plots are written, that the key figures are
+finite, and the qualitative claims that are robust at quick-mode sizes: the EKF beats
+per-frame EPnP on the bunny at 3 px, its covariance is consistent, the camera-only update
+grows about linearly with the number of points while EKF-SLAM grows faster, and memory
+stays flat. Sections on ../shared/data skip their parts when it is absent.
+"""
+import json
+import math
+
+import pytest
+
+from ekf_vo.bench import run_all
+from ekf_vo.bench.common import shared_data
+
+pytestmark = pytest.mark.data
+
+
+@pytest.fixture(scope='module')
+def quick_run(tmp_path_factory):
+    if shared_data('bunny') is None:
+        pytest.skip('../shared/data/bunny is absent (a fresh clone): benchmark skipped')
+    out = tmp_path_factory.mktemp('bench')
+    status = run_all.main(['--quick', '--out', str(out)])
+    return status, out, json.loads((out / 'results.json').read_text())
+
+
+def _finite(*xs):
+    return all(isinstance(x, (int, float)) and math.isfinite(x) for x in xs)
+
+
+def test_outputs_written(quick_run):
+    status, out, res = quick_run
+    assert status == 0, res['meta']['failed']
+    report = (out / 'report.md').read_text()
+    for title in ('## Summary', '## 1.', '## 2.', '## 3.', '## 4.', '## 5.', '## 6.', '## 7.'):
+        assert title in report
+    for png in ('bunny_per_pose.png', 'bunny_noise_sweep.png', 'fading_memory_focal.png',
+                'precise_points.png', 'speed.png', 'scaling.png', 'memory.png'):
+        assert (out / png).stat().st_size > 10_000, png
+        assert f'({png})' in report
+    if shared_data('kitti06_f0-50') is not None:
+        assert (out / 'real_data.png').is_file()
+
+
+def test_bunny_ekf_beats_epnp_at_3px_and_is_consistent(quick_run):
+    _, _, res = quick_run
+    b = res['bunny']
+    m = b['mean']
+    assert _finite(m['ekf_trans_pct'], m['epnp_trans_pct'], m['ekf_rot_deg'], m['epnp_rot_deg'])
+    assert b['setup']['all_visible'] and b['setup']['all_dof_change_every_step']
+    assert b['setup']['points'] == 453 and b['setup']['poses'] == 55
+    assert m['ekf_trans_pct'] < m['epnp_trans_pct']
+    assert m['ekf_rot_deg'] < m['epnp_rot_deg']
+    assert b['checks']['epnp_zero_at_zero_noise']
+    # NEES of a 6-dof pose: mean 6 for an honest covariance
+    assert 3.0 < b['nees']['ekf_mean'] < 10.0
+    assert 3.0 < res['consistency']['nees_mean'] < 10.0
+
+
+def test_fading_memory_figures_finite(quick_run):
+    _, _, res = quick_run
+    s = res['fading_memory']['focal']['summary']
+    assert 1.0 <= s['S_tuned_on_a'] <= 1.02
+    for name in ('a_yaw10', 'b_yaw20_pitch20', 'c_yaw70'):
+        r = s[name]
+        assert _finite(r['plain_heading_mean_abs'], r['tuned_heading_mean_abs'],
+                       r['plain_pitch_mean_abs'])
+        assert r['plain_heading_mean_abs'] < 5.0    # no divergence with a fixed map
+
+
+def test_precise_points_fraction(quick_run):
+    _, _, res = quick_run
+    r = res['precise_points']['synthetic_room']
+    assert r['frames_scored'] >= 0.8 * r['frames']
+    assert 0.0 < r['fraction_mean'] <= 1.0
+
+
+def test_update_cost_linear_for_camera_only_superlinear_for_slam(quick_run):
+    _, _, res = quick_run
+    sc = res['scaling']
+    assert sc['equivalence_max_abs_diff'] < 1e-8
+    assert sc['camera_only_slope'] < 1.5
+    assert sc['slam_slope'] > sc['camera_only_slope'] + 0.5
+    # at the largest size both ran, SLAM is far slower
+    n = sc['slam_n_points'][-1]
+    cam = sc['camera_only_ms'][sc['n_points'].index(n)]
+    assert sc['slam_ms'][-1] > 20 * cam
+
+
+def test_speed_and_memory(quick_run):
+    _, _, res = quick_run
+    assert res['throughput']['demo_640x480']['fps'] > 5.0
+    m = res['memory']
+    assert m['rss_flat'], m['rss_growth_second_half_mb_per_1000_frames']
+    assert m['map_size_max'] <= m['map_bound']
+    assert m['pct_frames_ok'] > 90.0
+
+
+def test_real_data_tabulated(quick_run):
+    _, _, res = quick_run
+    for s in ('kitti06_f0-50', 'middlebury_dino'):
+        if shared_data(s) is None:
+            continue
+        r = res['real_compare'][s]
+        for e in ('ekf', 'iekf', 'epnp'):
+            assert _finite(r[e]['ate_pct_path']['mean'], r[e]['pct_tracked']['mean'])
