@@ -93,6 +93,21 @@ class VoConfig(_Params):
     bootstrap_baseline_m: float = param(
         1.0, 'Distance assigned to the bootstrap baseline (sets the map scale).', 'm',
         1e-6, 1e6, group='bootstrap')
+    bootstrap: str = param(
+        'two_view', 'Map bootstrap: two_view (essential matrix, METHOD.md sec. 1) or '
+        'multi_view (two-view start, PnP + triangulation over the first '
+        'multiview_keyframes keyframes, then a sparse bundle adjustment; METHOD.md 3).',
+        choices=('two_view', 'multi_view'), group='bootstrap')
+    multiview_keyframes: int = param(
+        5, 'Keyframes reconstructed together by the multi_view bootstrap.', 'count', 2, 30,
+        group='bootstrap')
+    multiview_keyframe_parallax_deg: float = param(
+        2.0, 'multi_view: a frame becomes a keyframe when the median parallax of the map '
+        'points against the last keyframe exceeds this.', 'deg', 0.1, 45.0,
+        group='bootstrap')
+    multiview_ba_max_evaluations: int = param(
+        200, 'multi_view: residual evaluations allowed to the bundle adjustment.', 'count',
+        1, 10000, group='bootstrap')
 
     # ---- EKF (ekf_vo/core/ekf.py) ----
     estimator: str = param('ekf', 'Pose tracker: ekf (hybrid EKF), iekf (iterated EKF) or '
@@ -159,6 +174,31 @@ class VoConfig(_Params):
         3, 'Remove a map point after this many consecutive outlier verdicts.', 'count', 1,
         1000, group='map')
 
+    # ---- in-filter map refinement (ekf_vo/core/point_filter.py) ----
+    map_refinement: str = param(
+        'none', 'none: new points are triangulated once (hybrid, METHOD.md sec. 1); '
+        'filter: new tracks enter the EKF state as anchored inverse depths and are frozen '
+        'into the map once accurate (METHOD.md sec. 3); ignored by estimator epnp.',
+        choices=('none', 'filter'), group='refinement')
+    filter_max_points: int = param(
+        40, 'N: most points in the EKF state (state dimension 13 + N).', 'count', 1, 1000,
+        group='refinement')
+    filter_retire_count: int = param(
+        4, 'm: the m oldest in-filter points are examined for freezing every frame '
+        '(N/m >= 10 is required).', 'count', 1, 100, group='refinement')
+    filter_max_rel_depth_std: float = param(
+        0.05, 'Freeze a point once its depth std / depth is below this.', '', 1e-4, 1.0,
+        group='refinement')
+    filter_min_observations: int = param(
+        10, 'Freeze a point only after this many inlier observations.', 'count', 1, 10000,
+        group='refinement')
+    filter_max_observations: int = param(
+        100, 'Drop a point still not accurate after this many observations (too little '
+        'parallax; it returns to triangulation).', 'count', 2, 100000, group='refinement')
+    filter_init_rho_rel_sigma: float = param(
+        1.0, 'Initial inverse-depth std relative to 1/d_guess (>= 0.51 puts rho = 0, '
+        'infinity, inside the 95% region).', '', 0.01, 100.0, group='refinement')
+
     # ---- tracking quality (ekf_vo/core/pipeline.py) ----
     min_tracking_inliers: int = param(
         12, 'Fewer update inliers than this counts as a failed frame.', 'count', 4, 10000,
@@ -167,12 +207,23 @@ class VoConfig(_Params):
         3, 'Declare tracking lost (and re-bootstrap) after this many failed frames.',
         'frames', 1, 1000, group='quality')
     max_nis_per_dof: float = param(
-        30.0, 'A frame fails when the update NIS per degree of freedom exceeds this '
+        100.0, 'A frame fails when the update NIS per degree of freedom exceeds this '
         '(innovations inconsistent with the covariance; 1 is expected).', '', 1.0, 1e6,
         group='quality')
     max_position_sigma_m: float = param(
         10.0, 'Declare tracking lost when the position std exceeds this.', 'm', 1e-3, 1e6,
         group='quality')
+
+    def validate(self) -> 'VoConfig':
+        validate_dataclass(self)
+        # Li et al. 2016: N/m >= 10, so every point is observed ~10 times before freezing
+        if self.filter_max_points < 10 * self.filter_retire_count:
+            raise ConfigError(
+                f'filter_max_points / filter_retire_count must be >= 10, got '
+                f'{self.filter_max_points}/{self.filter_retire_count}')
+        if self.filter_max_observations <= self.filter_min_observations:
+            raise ConfigError('filter_max_observations must exceed filter_min_observations')
+        return self
 
 
 @dataclass

@@ -30,7 +30,9 @@ from .camera import PinholeCamera
 from .ekf import POS, QUAT, VEL, CameraEKF, FilterError
 from .features import FeatureTracker, Tracks
 from .map import LandmarkMap
+from .multiview import MultiViewBootstrap
 from .pnp import solve_epnp
+from .point_filter import PointFilter
 from .ransac import robust_update
 from .triangulation import triangulate_points
 
@@ -92,9 +94,15 @@ class VisualOdometry:
         self.camera = camera
         self.tracker = FeatureTracker(cfg)
         self.bootstrapper = TwoViewBootstrap(cfg, camera.K)
+        self.multiview = MultiViewBootstrap(cfg, camera.K) \
+            if cfg.bootstrap == 'multi_view' else None
         self.ekf = CameraEKF(camera.K)
         self.map = LandmarkMap(cfg.max_map_points, cfg.cull_after_misses)
         self.rng = np.random.default_rng(seed)
+        # in-filter map refinement (METHOD.md sec. 3); None = the hybrid default
+        self.points: PointFilter | None = None
+        if cfg.map_refinement == 'filter' and cfg.estimator != 'epnp':
+            self.points = PointFilter.from_config(cfg, camera.K)
         self.frame_index = -1
         self.n_resets = 0
         self._anchor_T_world_cam = np.eye(4)   # where a new map is attached
@@ -115,6 +123,11 @@ class VisualOdometry:
         self._cand_bearing: dict[int, np.ndarray] = {}
         self._banned: set[int] = set()
         self._T_world_cam_at: dict[int, np.ndarray] = {}
+        self._filter_rejected: set[int] = set()   # left the point filter unconverged
+        if self.points is not None:
+            self.points.clear()
+        if self.multiview is not None:
+            self.multiview.reset()
 
     def reset(self, reason: str = 'requested') -> None:
         """Drop the map and re-bootstrap; keep the world frame at the last good pose."""
@@ -147,6 +160,8 @@ class VisualOdometry:
         self.frame_index += 1
         if self.state == TrackingState.TRACKING:
             result = self._track(gray, stamp_ns)
+        elif self.multiview is not None:
+            result = self._initialise_multi_view(gray, stamp_ns, known_T_world_cam)
         else:
             result = self._initialise(gray, stamp_ns, known_T_world_cam)
         self._last_stamp_ns = stamp_ns
@@ -200,35 +215,85 @@ class VisualOdometry:
             res.message = f'bootstrap refused: {boot.reason}'
             return res
 
-        # ---- start tracking (METHOD.md sec. 1 step 2): pose of the second frame,
-        # velocities from the difference of the two poses
-        self.map.add(boot.point_ids, X_world, self.frame_index)
-        dt = max((stamp_ns - ref.stamp_ns) * 1e-9, 1e-6)
-        v_world = (T_world_cur[:3, 3] - T_world_ref[:3, 3]) / dt
-        R_rel = T_world_ref[:3, :3].T @ T_world_cur[:3, :3]
+        self._start_tracking(res, tracks, px, boot.point_ids, X_world, T_world_ref,
+                             T_world_cur, (stamp_ns - ref.stamp_ns) * 1e-9,
+                             [(ref.frame_index, ref.ids, ref.px_ideal, T_world_ref)])
+        res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
+                       f'{boot.median_parallax_deg:.1f} deg')
+        return res
+
+    def _start_tracking(self, res: FrameResult, tracks: Tracks, px: np.ndarray,
+                        point_ids: np.ndarray, X_world: np.ndarray, T_world_prev: np.ndarray,
+                        T_world_cur: np.ndarray, dt: float, sources: list) -> None:
+        """Start tracking (METHOD.md sec. 1 step 2): the map, the pose of the current
+        (last bootstrap) frame, velocities from the difference of the last two bootstrap
+        poses `dt` seconds apart. `sources`: earlier bootstrap frames (frame index, ids,
+        ideal px, T_world_cam), oldest first, from which tracks without a point become
+        triangulation candidates (wider baseline than from now)."""
+        self.map.add(point_ids, X_world, self.frame_index)
+        dt = max(dt, 1e-6)
+        v_world = (T_world_cur[:3, 3] - T_world_prev[:3, 3]) / dt
+        R_rel = T_world_prev[:3, :3].T @ T_world_cur[:3, :3]
         w_cam = geo.quat_to_rotvec(geo.matrix_to_quat(R_rel)) / dt
         c = self.cfg
         self.ekf.initialise(T_world_cur, v_world, w_cam, c.init_pose_sigma,
                             c.init_velocity_sigma, c.init_angular_velocity_sigma)
         self.state = TrackingState.TRACKING
         self._failed_frames = 0
-        self._T_world_cam_at = {ref.frame_index: T_world_ref,
-                                self.frame_index: T_world_cur}
-        # tracks without a point become triangulation candidates, from the reference
-        # frame when they were there already (wider baseline), else from now
-        ref_row = {int(i): k for k, i in enumerate(ref.ids)}
+        self._T_world_cam_at = {f: T for f, _, _, T in sources}
+        self._T_world_cam_at[self.frame_index] = T_world_cur
+        rows = [{int(i): k for k, i in enumerate(ids)} for _, ids, _, _ in sources]
         has_point = self.map.contains(tracks.ids)
         for k in np.flatnonzero(~has_point):
             tid = int(tracks.ids[k])
-            if tid in ref_row:
-                self._add_candidate(tid, ref.frame_index, ref.px_ideal[ref_row[tid]],
-                                    T_world_ref)
+            for (f, _, src_px, T), row in zip(sources, rows):
+                if tid in row:
+                    self._add_candidate(tid, f, src_px[row[tid]], T)
+                    break
             else:
                 self._add_candidate(tid, self.frame_index, px[k], T_world_cur)
         res.bootstrapped = True
-        res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
-                       f'{boot.median_parallax_deg:.1f} deg')
         self._fill_output(res, tracks, has_point, has_point)
+
+    def _initialise_multi_view(self, gray: np.ndarray, stamp_ns: int,
+                               known_T: np.ndarray | None) -> FrameResult:
+        """`bootstrap: multi_view` (multiview.py): keyframes, PnP, bundle adjustment.
+        Frames posed by PnP while the keyframes are collected are published."""
+        timings = {}
+        t = time.perf_counter()
+        tracks = self.tracker.track(gray)
+        timings['track'] = (time.perf_counter() - t) * 1e3
+        px = self.camera.undistort(tracks.px)
+        res = FrameResult(stamp_ns, TrackingState.INITIALISING, n_tracks=len(tracks),
+                          timings_ms=timings, track_ids=tracks.ids, track_px=tracks.px)
+        mv = self.multiview
+        baseline = None
+        if self._anchor_speed is not None and self._anchor_speed > 0 and mv.keyframes:
+            baseline = self._anchor_speed * (stamp_ns - mv.keyframes[0].stamp_ns) * 1e-9
+        t = time.perf_counter()
+        step = mv.step(self.frame_index, stamp_ns, tracks.ids, px, known_T,
+                       self._anchor_T_world_cam, baseline)
+        timings['bootstrap'] = (time.perf_counter() - t) * 1e3
+        res.message = step.message
+        if step.status != 'done':
+            if step.T_world_cam is not None and step.pose_cov is not None:
+                # a PnP pose of the collection phase: published with its own covariance,
+                # no velocity estimate yet (twist zero, with the prior's uncertainty)
+                c = self.cfg
+                res.ok = bool(np.all(np.isfinite(step.pose_cov)))
+                res.T_world_cam = step.T_world_cam
+                res.pose_cov = step.pose_cov + np.eye(6) * MIN_VARIANCE
+                res.twist_cam = np.zeros(6)
+                res.twist_cov = np.diag([c.init_velocity_sigma ** 2] * 3 +
+                                        [c.init_angular_velocity_sigma ** 2] * 3)
+            return res
+        kfs = step.keyframes
+        self._start_tracking(res, tracks, px, step.point_ids, step.X_world,
+                             kfs[-2].T_world_cam, kfs[-1].T_world_cam,
+                             (kfs[-1].stamp_ns - kfs[-2].stamp_ns) * 1e-9,
+                             [(kf.frame_index, kf.ids, kf.px, kf.T_world_cam)
+                              for kf in kfs[:-1]])
+        res.message = step.message
         return res
 
     # ------------------------------------------------------------------ tracking
@@ -240,6 +305,9 @@ class VisualOdometry:
             dt = c.default_dt_s
 
         t = time.perf_counter()
+        if self.points is not None:
+            # cross-covariance camera/points, with F at the prior state: before the predict
+            self.points.predict(self.ekf.x, dt, c.fading_memory)
         self.ekf.predict(dt, c.accel_sigma, c.angular_accel_sigma, c.fading_memory)
         # predicted landmark pixels = the KLT initial guess (active search, Davison 2003)
         prev_ids = self._prev_ids
@@ -249,6 +317,8 @@ class VisualOdometry:
             px_pred, front, _ = self.ekf.observe(X_prev, with_jacobian=False)
             ok = front & np.all(np.isfinite(px_pred), axis=1)
             predicted = (prev_ids[mask][ok], self.camera.distort(px_pred[ok]))
+        if self.points is not None and len(self.points):
+            predicted = self._add_filter_predictions(predicted)
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -268,6 +338,8 @@ class VisualOdometry:
         try:
             if c.estimator == 'epnp':
                 inlier_rows = rows[self._epnp_update(px[rows], X, tracks.ids[rows], dt)]
+            elif self.points is not None:
+                inlier_rows = self._joint_update(tracks, px, rows, X)
             else:
                 out = robust_update(
                     self.ekf, px[rows], X, c.pixel_sigma_px, self.rng,
@@ -312,7 +384,11 @@ class VisualOdometry:
         t = time.perf_counter()
         T_world_cam = self.ekf.T_world_cam
         self._T_world_cam_at[self.frame_index] = T_world_cam
-        res.n_new_points = self._grow_map(tracks, px, has_point, T_world_cam)
+        grow_mask = has_point
+        if self.points is not None:
+            n_frozen, grow_mask = self._refine_points(tracks, px, rows, X, T_world_cam)
+            res.n_new_points += n_frozen
+        res.n_new_points += self._grow_map(tracks, px, grow_mask, T_world_cam)
         timings['map'] = (time.perf_counter() - t) * 1e3
 
         inlier_mask = np.zeros(len(tracks), bool)
@@ -320,6 +396,69 @@ class VisualOdometry:
         res.ok = self._failed_frames == 0
         self._fill_output(res, tracks, has_point, inlier_mask)
         return res
+
+    # ------------------------------------------------------------------ point filter
+    def _add_filter_predictions(self, predicted):
+        """Append the predicted pixels of the in-filter points to the KLT prior."""
+        X = self.points.X_world()
+        ok = np.all(np.isfinite(X), axis=1)
+        if not np.any(ok):
+            return predicted
+        px_pred, front, _ = self.ekf.observe(X[ok], with_jacobian=False)
+        good = front & np.all(np.isfinite(px_pred), axis=1)
+        ids = self.points.ids[ok][good]
+        px_pred = self.camera.distort(px_pred[good])
+        if predicted is None:
+            return ids, px_pred
+        return np.concatenate((predicted[0], ids)), np.concatenate((predicted[1], px_pred))
+
+    def _joint_update(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
+                      X: np.ndarray) -> np.ndarray:
+        """1-point RANSAC update of camera + in-filter points (point_filter.py) with the
+        map matches `rows` and the tracked filter points. Returns the inlier track rows."""
+        c = self.cfg
+        pt_rows = self.points.rows_of(tracks.ids)
+        f_tracks = np.flatnonzero(pt_rows >= 0)
+        map_in, pt_in, _ = self.points.robust_update(
+            self.ekf, px[rows], X, px[f_tracks], pt_rows[f_tracks], c.pixel_sigma_px,
+            self.rng, one_point=c.one_point_ransac, inlier_px=c.ransac_inlier_px,
+            probability=c.ransac_probability, max_hypotheses=c.ransac_max_hypotheses,
+            gate_probability=c.gate_probability,
+            iterations=c.iekf_iterations if c.estimator == 'iekf' else 1)
+        if len(rows):
+            culled = self.map.record_observations(tracks.ids[rows], map_in, self.frame_index)
+            self._banned.update(int(i) for i in culled)
+        return np.concatenate((rows[map_in], f_tracks[pt_in]))
+
+    def _refine_points(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
+                       X: np.ndarray, T_world_cam: np.ndarray) -> tuple[int, np.ndarray]:
+        """Freeze / drop in-filter points (METHOD.md sec. 3), then fill the free slots with
+        new tracks. Returns (points frozen into the map, mask of tracks that are either
+        in the map or in the filter: those are not triangulation candidates)."""
+        pts = self.points
+        out = pts.retire(tracks.ids, T_world_cam[:3, 3])
+        if len(out.frozen_ids):
+            self.map.add(out.frozen_ids, out.frozen_X, self.frame_index,
+                         n_obs=int(np.min(out.frozen_n_obs)))
+        self._filter_rejected.update(int(i) for i in out.dropped_ids)
+        in_map = self.map.contains(tracks.ids)
+        in_filter = pts.rows_of(tracks.ids) >= 0
+        if pts.free_slots > 0 and len(X):
+            R, r = T_world_cam[:3, :3], T_world_cam[:3, 3]
+            depth = (X - r) @ R[:, 2]
+            depth = depth[depth > 0]
+            free = ~in_map & ~in_filter
+            new = [k for k in np.flatnonzero(free)[::-1]       # newest tracks first
+                   if int(tracks.ids[k]) not in self._banned
+                   and int(tracks.ids[k]) not in self._filter_rejected]
+            new = np.array(new[:pts.free_slots], np.int64)
+            if len(new) and len(depth):
+                pts.add(tracks.ids[new], px[new], T_world_cam, float(np.median(depth)),
+                        self.frame_index)
+                in_filter[new] = True
+                for tid in tracks.ids[new]:
+                    self._drop_candidate(int(tid))
+        return len(out.frozen_ids), in_map | in_filter
 
     def _epnp_update(self, z: np.ndarray, X: np.ndarray, ids: np.ndarray,
                      dt: float) -> np.ndarray:
