@@ -48,3 +48,25 @@ def test_split_params_routes_core_and_node_fields():
     assert core.max_features == 111 and node.odom_frame == 'o'
     with pytest.raises(ConfigError, match='unknown vo_node parameter'):
         split_params({'bogus': 1})
+
+
+def test_core_imports_numpy_and_opencv_only():
+    """The estimator core stays free of ROS, messages and bag libraries (pure core)."""
+    import ast
+    from pathlib import Path
+    core = Path(__file__).resolve().parents[1] / 'ekf_vo' / 'core'
+    allowed = {'numpy', 'cv2', 'ekf_vo', '__future__', 'logging', 'dataclasses', 'enum',
+               'time', 'math', 'typing', 'collections', 'functools', 'itertools'}
+    lazy_ok = {('multiview.py', 'scipy')}   # bundle adjustment, imported in the function
+    for path in core.glob('*.py'):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                names = [node.module]
+            for name in names:
+                top = name.split('.')[0]
+                assert top in allowed or (path.name, top) in lazy_ok, \
+                    f'{path.name} imports {name}'
