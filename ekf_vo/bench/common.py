@@ -39,3 +39,16 @@ def to_jsonable(obj: Any) -> Any:
 def write_json(path: Path, data: Any) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(to_jsonable(data), indent=1))
+
+
+def section_main(argv: list[str] | None, doc: str, run, name: str, summarize=print) -> int:
+    """The CLI of one benchmark section: `--quick`, `--out`; writes `<name>.json`."""
+    import argparse
+    parser = argparse.ArgumentParser(description=doc.split('\n')[0])
+    parser.add_argument('--quick', action='store_true')
+    parser.add_argument('--out', type=Path, default=Path('bench/results'))
+    args = parser.parse_args(argv)
+    res = run(args.quick, args.out)
+    write_json(args.out / f'{name}.json', res)
+    summarize(res)
+    return 0

@@ -13,7 +13,6 @@ that memory and time per frame stay flat anyway. Every 100 frames: resident set 
 """
 from __future__ import annotations
 
-import argparse
 import os
 import resource
 import sys
@@ -26,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from ..config import VoConfig
 from ..core.camera import PinholeCamera
 from ..core.pipeline import VisualOdometry
-from .common import write_json
+from .common import section_main
 
 LOOP_FRAMES = 300
 RATE_HZ = 30.0
@@ -156,14 +155,8 @@ def plot(res: dict, out: Path) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--quick', action='store_true')
-    parser.add_argument('--out', type=Path, default=Path('bench/results'))
-    args = parser.parse_args(argv)
-    res = run(args.quick, args.out)
-    write_json(args.out / 'memory.json', res)
-    print({k: v for k, v in res.items() if k != 'samples'})
-    return 0
+    return section_main(argv, __doc__, run, 'memory',
+                        lambda res: print({k: v for k, v in res.items() if k != 'samples'}))
 
 
 if __name__ == '__main__':

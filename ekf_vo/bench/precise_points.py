@@ -16,7 +16,6 @@ frames 0-50 when ../shared/data is present.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np
 from ..config import VoConfig
 from ..core.camera import PinholeCamera
 from ..core.pipeline import FrameResult, VisualOdometry
-from .common import shared_data, write_json
+from .common import section_main, shared_data
 
 THRESHOLD_PX = 1.0
 PAPER = {'pct_images': 80.0, 'pct_points_precise': 89.0}
@@ -141,16 +140,13 @@ def plot(res: dict, out: Path) -> list[str]:
     return [p.name]
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--quick', action='store_true')
-    parser.add_argument('--out', type=Path, default=Path('bench/results'))
-    args = parser.parse_args(argv)
-    res = run(args.quick, args.out)
-    write_json(args.out / 'precise_points.json', res)
+def _summarize(res: dict) -> None:
     for k in ('synthetic_room', 'kitti06'):
         print(k, {a: b for a, b in res[k].items() if a != 'fraction_per_image'})
-    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return section_main(argv, __doc__, run, 'precise_points', _summarize)
 
 
 if __name__ == '__main__':

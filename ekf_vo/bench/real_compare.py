@@ -9,13 +9,12 @@ seeds per estimator (RANSAC and the 1-point hypotheses are random), mean and std
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from .common import shared_data, write_json
+from .common import section_main, shared_data
 from .real_data import compare
 
 SEQUENCES = ('kitti06_f0-50', 'middlebury_dino')
@@ -64,18 +63,15 @@ def plot(res: dict, out: Path) -> list[str]:
     return [p.name]
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--quick', action='store_true')
-    parser.add_argument('--out', type=Path, default=Path('bench/results'))
-    args = parser.parse_args(argv)
-    res = run(args.quick, args.out)
-    write_json(args.out / 'real_compare.json', res)
+def _summarize(res: dict) -> None:
     for s in SEQUENCES:
         print(s, {e: {k: round(v['mean'], 3) for k, v in res[s][e].items()
                       if isinstance(v, dict) and 'mean' in v}
                   for e in ESTIMATORS} if 'skipped' not in res[s] else res[s])
-    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return section_main(argv, __doc__, run, 'real_compare', _summarize)
 
 
 if __name__ == '__main__':

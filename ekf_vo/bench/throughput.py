@@ -10,12 +10,11 @@ reported as skipped with the reason when it cannot run.
 """
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 from pathlib import Path
 
-from .common import machine, write_json
+from .common import machine, section_main
 from .speed import load_demo_frames, load_kitti_frames, time_core
 
 logger = logging.getLogger(__name__)
@@ -72,14 +71,7 @@ def plot(res: dict, out: Path) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--quick', action='store_true')
-    parser.add_argument('--out', type=Path, default=Path('bench/results'))
-    args = parser.parse_args(argv)
-    res = run(args.quick, args.out)
-    write_json(args.out / 'throughput.json', res)
-    print(res)
-    return 0
+    return section_main(argv, __doc__, run, 'throughput')
 
 
 if __name__ == '__main__':
