@@ -501,6 +501,7 @@ class VisualOdometry:
         alive = set(int(i) for i in tracks.ids)
         for tid in [t for t in self._cand_frame if t not in alive]:
             self._drop_candidate(tid)
+        self._banned &= alive          # ids are never reused: forget ended tracks
         new_rows, cand_rows = [], []
         for k in np.flatnonzero(~has_point):
             tid = int(tracks.ids[k])
