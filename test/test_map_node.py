@@ -45,15 +45,6 @@ def _env() -> dict[str, str]:
 
 
 @pytest.fixture
-def context(monkeypatch: pytest.MonkeyPatch):
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(DOMAIN_ID))
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
-@pytest.fixture
 def map_node_proc(tmp_path: Path):
     """map_node as a subprocess at 5 Hz; yields (Popen, stderr log path); stopped with SIGINT."""
     log = tmp_path / 'map_node.log'

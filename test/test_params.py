@@ -20,15 +20,6 @@ DOMAIN_ID = 50 + zlib.crc32(__name__.rpartition('.')[2].encode()) % 50
 
 
 @pytest.fixture
-def context(monkeypatch: pytest.MonkeyPatch):
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(DOMAIN_ID))
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
-@pytest.fixture
 def node(context: Context):
     n = Node('params_test', context=context)
     yield n

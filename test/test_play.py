@@ -57,15 +57,6 @@ def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-@pytest.fixture
-def context(monkeypatch: pytest.MonkeyPatch):
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(DOMAIN_ID))
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
 class Recorder:
     """Test-side subscriber node + executor; records messages per topic."""
 

@@ -90,6 +90,25 @@ def rotated_by_quat_conj_jacobian(q_wxyz: np.ndarray, y: np.ndarray
     return out, J
 
 
+def pinhole_project(X_cam: np.ndarray, K: np.ndarray, with_jacobian: bool = True,
+                    min_depth: float = 1e-6):
+    """Ideal pixels (n,2) of camera-frame points, in-front mask (n,) and, optionally, the
+    pinhole Jacobian d(u,v)/dX^C (n,2,3): u = fx X/Z + cx, v = fy Y/Z + cy."""
+    Z = X_cam[:, 2]
+    in_front = Z > min_depth
+    inv_z = 1.0 / np.where(in_front, Z, 1.0)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    px = np.column_stack((fx * X_cam[:, 0] * inv_z + cx, fy * X_cam[:, 1] * inv_z + cy))
+    if not with_jacobian:
+        return px, in_front, None
+    J_pi = np.zeros((len(X_cam), 2, 3))
+    J_pi[:, 0, 0] = fx * inv_z
+    J_pi[:, 0, 2] = -fx * X_cam[:, 0] * inv_z ** 2
+    J_pi[:, 1, 1] = fy * inv_z
+    J_pi[:, 1, 2] = -fy * X_cam[:, 1] * inv_z ** 2
+    return px, in_front, J_pi
+
+
 def motion_model(x: np.ndarray, dt: float, noise: np.ndarray | None = None) -> np.ndarray:
     """x' = f(x, n) of the constant-velocity model with impulses n = [a, alpha] (6,)."""
     a, alpha = (np.zeros(3), np.zeros(3)) if noise is None else (noise[:3], noise[3:])
@@ -191,19 +210,10 @@ class CameraEKF:
         x = self.x if x is None else x
         y = np.asarray(X_world, dtype=float) - x[POS]
         X_cam, dXc_dq = rotated_by_quat_conj_jacobian(x[QUAT], y)
-        Z = X_cam[:, 2]
-        in_front = Z > 1e-6
-        inv_z = 1.0 / np.where(in_front, Z, 1.0)
-        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
-        px = np.column_stack((fx * X_cam[:, 0] * inv_z + cx, fy * X_cam[:, 1] * inv_z + cy))
+        px, in_front, J_pi = pinhole_project(X_cam, self.K, with_jacobian, min_depth=1e-6)
         if not with_jacobian:
             return px, in_front, None
         n = len(X_world)
-        J_pi = np.zeros((n, 2, 3))                      # d(u,v)/dX^C, pinhole
-        J_pi[:, 0, 0] = fx * inv_z
-        J_pi[:, 0, 2] = -fx * X_cam[:, 0] * inv_z ** 2
-        J_pi[:, 1, 1] = fy * inv_z
-        J_pi[:, 1, 2] = -fy * X_cam[:, 1] * inv_z ** 2
         # dX^C/dr = -R^T (the same for every point); dX^C/dq from the quadratic form
         R_cw = geo.quat_to_matrix(x[QUAT]).T * np.dot(x[QUAT], x[QUAT])
         H = np.zeros((n, 2, STATE_DIM))

@@ -170,15 +170,21 @@ class VisualOdometry:
         return result
 
     # ------------------------------------------------------------------ bootstrap
-    def _initialise(self, gray: np.ndarray, stamp_ns: int,
-                    known_T: np.ndarray | None) -> FrameResult:
-        timings = {}
+    def _track_initialising(self, gray: np.ndarray, stamp_ns: int
+                            ) -> tuple[Tracks, np.ndarray, FrameResult]:
+        """Front end of a frame before tracking: tracks, their ideal pixels, a result."""
         t = time.perf_counter()
         tracks = self.tracker.track(gray)
-        timings['track'] = (time.perf_counter() - t) * 1e3
+        timings = {'track': (time.perf_counter() - t) * 1e3}
         px = self.camera.undistort(tracks.px)
         res = FrameResult(stamp_ns, TrackingState.INITIALISING, n_tracks=len(tracks),
                           timings_ms=timings, track_ids=tracks.ids, track_px=tracks.px)
+        return tracks, px, res
+
+    def _initialise(self, gray: np.ndarray, stamp_ns: int,
+                    known_T: np.ndarray | None) -> FrameResult:
+        tracks, px, res = self._track_initialising(gray, stamp_ns)
+        timings = res.timings_ms
         ref = self._ref
         too_old = ref is not None and self.frame_index - ref.frame_index > \
             self.cfg.bootstrap_max_frames
@@ -259,13 +265,8 @@ class VisualOdometry:
                                known_T: np.ndarray | None) -> FrameResult:
         """`bootstrap: multi_view` (multiview.py): keyframes, PnP, bundle adjustment.
         Frames posed by PnP while the keyframes are collected are published."""
-        timings = {}
-        t = time.perf_counter()
-        tracks = self.tracker.track(gray)
-        timings['track'] = (time.perf_counter() - t) * 1e3
-        px = self.camera.undistort(tracks.px)
-        res = FrameResult(stamp_ns, TrackingState.INITIALISING, n_tracks=len(tracks),
-                          timings_ms=timings, track_ids=tracks.ids, track_px=tracks.px)
+        tracks, px, res = self._track_initialising(gray, stamp_ns)
+        timings = res.timings_ms
         mv = self.multiview
         baseline = None
         if self._anchor_speed is not None and self._anchor_speed > 0 and mv.keyframes:

@@ -67,7 +67,8 @@ import numpy as np
 
 from . import geometry as geo
 from .ekf import (POS, POSE, QUAT, STATE_DIM, CameraEKF, FilterError, UpdateStats,
-                  chi2_2dof_quantile, motion_jacobians, rotated_by_quat_conj_jacobian)
+                  chi2_2dof_quantile, motion_jacobians, pinhole_project,
+                  rotated_by_quat_conj_jacobian)
 
 logger = logging.getLogger(__name__)
 
@@ -104,19 +105,10 @@ class Measurements:
         d = self.anchor - x[POS]
         y = rho[:, None] * d + self.ray
         X_cam, dXc_dq = rotated_by_quat_conj_jacobian(x[QUAT], y)
-        Z = X_cam[:, 2]
-        in_front = Z > 1e-9
-        inv_z = 1.0 / np.where(in_front, Z, 1.0)
-        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
-        px = np.column_stack((fx * X_cam[:, 0] * inv_z + cx, fy * X_cam[:, 1] * inv_z + cy))
+        px, in_front, J_pi = pinhole_project(X_cam, self.K, with_jacobian, min_depth=1e-9)
         if not with_jacobian:
             return px, in_front, None
         n = len(y)
-        J_pi = np.zeros((n, 2, 3))
-        J_pi[:, 0, 0] = fx * inv_z
-        J_pi[:, 0, 2] = -fx * X_cam[:, 0] * inv_z ** 2
-        J_pi[:, 1, 1] = fy * inv_z
-        J_pi[:, 1, 2] = -fy * X_cam[:, 1] * inv_z ** 2
         # the quadratic form scales with |q|^2 (as CameraEKF.observe)
         R_cw = geo.quat_to_matrix(x[QUAT]).T * np.dot(x[QUAT], x[QUAT])
         J_R = J_pi @ R_cw                                        # (n,2,3)
