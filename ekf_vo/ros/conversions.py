@@ -37,6 +37,8 @@ from typing import Any, Mapping
 import cv2
 import numpy as np
 
+from ..core import geometry as geo
+
 logger = logging.getLogger(__name__)
 
 __all__ = [
@@ -860,15 +862,9 @@ def quat_xyzw_to_matrix(q: Any) -> np.ndarray:
     Raises ConversionError for non-finite or (near-)zero quaternions.
     """
     qa = _as_float_array(q, 'quat_xyzw_to_matrix', 'quaternion', (4,))
-    norm = float(np.linalg.norm(qa))
-    if norm < 1e-12:
+    if float(np.linalg.norm(qa)) < 1e-12:
         raise ConversionError(f'quat_xyzw_to_matrix: quaternion {qa.tolist()} has zero norm')
-    x, y, z, w = qa / norm
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return geo.quat_to_matrix(geo.quat_xyzw_to_wxyz(qa))
 
 
 def _check_rotation(R: Any, what: str, tol: float = 1e-6) -> np.ndarray:
@@ -884,31 +880,11 @@ def _check_rotation(R: Any, what: str, tol: float = 1e-6) -> np.ndarray:
 def matrix_to_quat_xyzw(R: Any, tol: float = 1e-6) -> np.ndarray:
     """3x3 rotation matrix -> unit quaternion ``(x, y, z, w)`` with ``w >= 0``.
 
-    Shepperd's method (pivot on the largest of trace, R00, R11, R22) so it is accurate near
-    180 degrees. Canonical sign as scipy's ``as_quat(canonical=True)``: ``w > 0``, or if
+    Computed by core.geometry.matrix_to_quat (Shepperd's method, accurate near 180 degrees). Canonical sign as scipy's ``as_quat(canonical=True)``: ``w > 0``, or if
     ``w == 0`` the first non-zero component positive. Raises ConversionError when ``R`` is not
     orthonormal within ``tol`` or has det <= 0.
     """
-    m = _check_rotation(R, 'matrix_to_quat_xyzw', tol)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    pivot = int(np.argmax([tr, m[0, 0], m[1, 1], m[2, 2]]))
-    if pivot == 0:
-        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
-        q = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s,
-                      (m[1, 0] - m[0, 1]) / s, 0.25 * s])
-    elif pivot == 1:
-        s = 2.0 * math.sqrt(max(1.0 + m[0, 0] - m[1, 1] - m[2, 2], 0.0))
-        q = np.array([0.25 * s, (m[0, 1] + m[1, 0]) / s,
-                      (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s])
-    elif pivot == 2:
-        s = 2.0 * math.sqrt(max(1.0 + m[1, 1] - m[0, 0] - m[2, 2], 0.0))
-        q = np.array([(m[0, 1] + m[1, 0]) / s, 0.25 * s,
-                      (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s])
-    else:
-        s = 2.0 * math.sqrt(max(1.0 + m[2, 2] - m[0, 0] - m[1, 1], 0.0))
-        q = np.array([(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s,
-                      0.25 * s, (m[1, 0] - m[0, 1]) / s])
-    q /= np.linalg.norm(q)
+    q = geo.quat_wxyz_to_xyzw(geo.matrix_to_quat(_check_rotation(R, 'matrix_to_quat_xyzw', tol)))
     if q[3] < 0 or (q[3] == 0 and q[np.flatnonzero(q)[0]] < 0):
         q = -q
     return q
@@ -949,7 +925,8 @@ def _vec3(obj: Any, what: str) -> np.ndarray:
                      float(_field(obj, 'z', what))])
 
 
-def _pose_msg_to_matrix(pose: Any, what: str) -> np.ndarray:
+def pose_msg_to_matrix(pose: Any, what: str = 'Pose') -> np.ndarray:
+    """geometry_msgs/Pose -> 4x4 (quaternion normalised first)."""
     position = _field(pose, 'position', what)
     orientation = _field(pose, 'orientation', what)
     q = [float(_field(orientation, c, what)) for c in 'xyzw']
@@ -1016,7 +993,7 @@ def odometry_to_pose(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     what = 'Odometry'
     pwc = _field(msg, 'pose', what)
     twc = _field(msg, 'twist', what)
-    T = _pose_msg_to_matrix(_field(pwc, 'pose', what), what)
+    T = pose_msg_to_matrix(_field(pwc, 'pose', what), what)
     C_pose = _as_float_array(_field(pwc, 'covariance', what), what, 'pose covariance', (6, 6),
                              finite=False)
     tw = _field(twc, 'twist', what)
@@ -1029,7 +1006,7 @@ def odometry_to_pose(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
 
 def pose_stamped_to_matrix(msg: Any) -> np.ndarray:
     """geometry_msgs/PoseStamped -> 4x4 ``T_frame_body`` (pose of the body in header.frame_id)."""
-    return _pose_msg_to_matrix(_field(msg, 'pose', 'PoseStamped'), 'PoseStamped')
+    return pose_msg_to_matrix(_field(msg, 'pose', 'PoseStamped'), 'PoseStamped')
 
 
 def matrix_to_pose_stamped(T: np.ndarray, stamp_ns: int, frame_id: str,

@@ -23,7 +23,8 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.reader import Connection
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
-from scipy.spatial.transform import Rotation
+
+from ..ros import conversions as conv
 
 logger = logging.getLogger(__name__)
 
@@ -46,14 +47,12 @@ def typestore() -> Typestore:
 # --------------------------------------------------------------------------- message helpers
 def ns_to_time(stamp_ns: int) -> Any:
     """builtin_interfaces/Time for an integer nanosecond stamp."""
-    ts = typestore()
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    return ts.types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
+    return conv.ns_to_stamp(stamp_ns, typestore())
 
 
 def time_to_ns(stamp: Any) -> int:
     """Integer nanoseconds of a builtin_interfaces/Time (rosbags or rclpy object)."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    return conv.stamp_to_ns(stamp)
 
 
 def make_header(stamp_ns: int, frame_id: str) -> Any:
@@ -67,15 +66,12 @@ def image_msg(image: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
     if img.dtype != np.uint8:
         raise ValueError(f'image must be uint8, got {img.dtype}')
     if img.ndim == 2:
-        encoding, channels = 'mono8', 1
+        encoding = 'mono8'
     elif img.ndim == 3 and img.shape[2] == 3:
-        encoding, channels = 'bgr8', 3
+        encoding = 'bgr8'
     else:
         raise ValueError(f'unsupported image shape {img.shape}')
-    height, width = img.shape[:2]
-    return typestore().types[IMAGE](
-        header=make_header(stamp_ns, frame_id), height=height, width=width, encoding=encoding,
-        is_bigendian=0, step=width * channels, data=img.reshape(-1))
+    return conv.numpy_to_image(img, encoding, stamp_ns, frame_id, typestore=typestore())
 
 
 def compressed_msg(image: np.ndarray, stamp_ns: int, frame_id: str, fmt: str = 'jpeg',
@@ -106,37 +102,18 @@ def compressed_msg(image: np.ndarray, stamp_ns: int, frame_id: str, fmt: str = '
 def camera_info_msg(width: int, height: int, K: np.ndarray, D: Sequence[float],
                     distortion_model: str, stamp_ns: int, frame_id: str) -> Any:
     """sensor_msgs/CameraInfo with R = I and P = [K | 0]."""
-    ts = typestore()
-    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
-    P = np.hstack([K, np.zeros((3, 1))])
-    roi = ts.types['sensor_msgs/msg/RegionOfInterest'](
-        x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    return ts.types[CAMERA_INFO](
-        header=make_header(stamp_ns, frame_id), height=int(height), width=int(width),
-        distortion_model=distortion_model, d=np.asarray(D, dtype=np.float64).reshape(-1),
-        k=K.reshape(-1).copy(), r=np.eye(3).reshape(-1), p=P.reshape(-1), binning_x=0,
-        binning_y=0, roi=roi)
+    return conv.camera_info_from_params(width, height, K, D, distortion_model, stamp_ns,
+                                        frame_id, typestore())
 
 
 def pose_stamped_msg(T_world_cam: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
     """geometry_msgs/PoseStamped of a 4x4 pose (``frame_id`` is the parent/world frame)."""
-    ts = typestore()
-    T = np.asarray(T_world_cam, dtype=np.float64)
-    q_xyzw = Rotation.from_matrix(T[:3, :3]).as_quat()
-    pos = ts.types['geometry_msgs/msg/Point'](x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]))
-    ori = ts.types['geometry_msgs/msg/Quaternion'](
-        x=float(q_xyzw[0]), y=float(q_xyzw[1]), z=float(q_xyzw[2]), w=float(q_xyzw[3]))
-    pose = ts.types['geometry_msgs/msg/Pose'](position=pos, orientation=ori)
-    return ts.types[POSE_STAMPED](header=make_header(stamp_ns, frame_id), pose=pose)
+    return conv.matrix_to_pose_stamped(T_world_cam, stamp_ns, frame_id, typestore())
 
 
 def pose_to_matrix(pose: Any) -> np.ndarray:
     """4x4 matrix of a geometry_msgs/Pose (rosbags object)."""
-    p, q = pose.position, pose.orientation
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    T[:3, 3] = [p.x, p.y, p.z]
-    return T
+    return conv.pose_msg_to_matrix(pose)
 
 
 def decode_image(msgtype: str, msg: Any) -> np.ndarray:
@@ -304,24 +281,37 @@ def read_ground_truth(path: str | Path, topic: str = '/ground_truth/pose'
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth poses of a bag: ``(stamps_ns (N,) int64, T_world_cam (N, 4, 4))``.
 
-    Stamps are the message header stamps.  Accepts PoseStamped, Odometry or TransformStamped.
+    The one ground-truth reader of the project. Stamps are the header stamps (the bag time
+    where a header stamp is zero), sorted. Accepts PoseStamped, PoseWithCovarianceStamped,
+    Odometry and TransformStamped; an absent topic gives empty arrays.
     """
     stamps: list[int] = []
     poses: list[np.ndarray] = []
-    for _, msgtype, _, msg in iter_bag(path, [topic]):
+    n_fallback = 0
+    for _, msgtype, log_ns, msg in iter_bag(path, [topic]):
         if msgtype == POSE_STAMPED:
             T = pose_to_matrix(msg.pose)
-        elif msgtype == 'nav_msgs/msg/Odometry':
+        elif msgtype in ('nav_msgs/msg/Odometry',
+                         'geometry_msgs/msg/PoseWithCovarianceStamped'):
             T = pose_to_matrix(msg.pose.pose)
         elif msgtype == 'geometry_msgs/msg/TransformStamped':
             tr, q = msg.transform.translation, msg.transform.rotation
             T = np.eye(4)
-            T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+            T[:3, :3] = conv.quat_xyzw_to_matrix([q.x, q.y, q.z, q.w])
             T[:3, 3] = [tr.x, tr.y, tr.z]
         else:
             raise ValueError(f'{topic}: unsupported ground-truth type {msgtype}')
-        stamps.append(time_to_ns(msg.header.stamp))
+        stamp_ns = time_to_ns(msg.header.stamp)
+        if stamp_ns == 0:
+            n_fallback += 1
+            stamp_ns = log_ns
+        stamps.append(stamp_ns)
         poses.append(T)
     if not poses:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))
-    return np.asarray(stamps, dtype=np.int64), np.stack(poses)
+    if n_fallback:
+        logger.warning('%d/%d ground-truth messages had a zero header stamp; used bag time',
+                       n_fallback, len(stamps))
+    stamps_arr = np.asarray(stamps, dtype=np.int64)
+    order = np.argsort(stamps_arr, kind='stable')
+    return stamps_arr[order], np.stack(poses)[order]

@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     from sensor_msgs.msg import PointCloud2
 
     from ..bench.ros_harness import Harness, NodeProcess
-    from ..config import NodeConfig, load_yaml_params, split_params
+    from ..config import load_yaml_params, split_params
     from ..core import geometry as geo
     from ..core.frames import optical_to_body_extrinsic
     from ..ros import conversions as conv
@@ -66,8 +66,6 @@ def main(argv: list[str] | None = None) -> int:
     else:
         ros_args += ['-r', f'image:={image_topic}']
     _, node_cfg = split_params(load_yaml_params(args.params))
-    node_cfg = NodeConfig.from_mapping({k: getattr(node_cfg, k) for k in
-                                        ('T_base_cam_xyz', 'T_base_cam_xyzw')})
     T_base_cam = optical_to_body_extrinsic(node_cfg.T_base_cam_xyz, node_cfg.T_base_cam_xyzw)
 
     print(f'[demo] starting vo_node + map_node (domain {args.domain_id}), bag {args.bag}')

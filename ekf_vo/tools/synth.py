@@ -610,24 +610,12 @@ def render_sequence(config: SynthConfig, scene: Scene | None = None
         yield seq.frame(k)
 
 
-def write_tum(path: str | Path, stamps_ns: Sequence[int] | np.ndarray,
-              T_world_cam: Sequence[np.ndarray] | np.ndarray) -> None:
-    """Write poses as TUM text: ``t tx ty tz qx qy qz qw`` (t in seconds)."""
-    lines = ['# timestamp tx ty tz qx qy qz qw  (T_world_cam, camera optical frame)']
-    for st, T in zip(stamps_ns, T_world_cam):
-        T = np.asarray(T)
-        q_xyzw = Rotation.from_matrix(T[:3, :3]).as_quat()
-        sec, ns = divmod(int(st), 1_000_000_000)
-        vals = ' '.join(f'{v:.9f}' for v in (*T[:3, 3], *q_xyzw))
-        lines.append(f'{sec}.{ns:09d} {vals}')
-    Path(path).write_text('\n'.join(lines) + '\n')
-
-
 def write_bag(config: SynthConfig, out: str | Path, *, raw: bool = True, compressed: bool = False,
               compressed_format: str = 'jpeg', jpeg_quality: int = 90, overwrite: bool = False,
               tum: str | Path | None = None, progress: bool = False) -> dict[str, float]:
     """Render ``config`` into the rosbag2 ``out`` (MCAP); returns timing statistics."""
     from ekf_vo.tools.bagio import BagWriter  # local: keeps the renderer importable alone
+    from ekf_vo.tools.trajectory_io import write_tum
 
     cam_frame, world_frame = 'camera_optical', 'world'
     seq = SequenceRenderer(config)
@@ -659,7 +647,7 @@ def write_bag(config: SynthConfig, out: str | Path, *, raw: bool = True, compres
             poses.append(T)
     total = time.perf_counter() - t0
     if tum is not None:
-        write_tum(tum, stamps, poses)
+        write_tum(tum, np.asarray(stamps, dtype=np.int64) * 1e-9, np.asarray(poses))
     return {'frames': config.frames, 'render_s': t_render, 'total_s': total,
             'render_fps': config.frames / max(t_render, 1e-9)}
 

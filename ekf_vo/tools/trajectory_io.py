@@ -158,21 +158,13 @@ def is_bag_path(path: PathLike) -> bool:
     return path.is_dir() or path.suffix.lower() in _BAG_SUFFIXES
 
 
-def _pose_of(msg: object, msgtype: str) -> object:
-    """Return the geometry_msgs/Pose inside a supported message."""
-    if msgtype == 'geometry_msgs/msg/PoseStamped':
-        return msg.pose  # type: ignore[attr-defined]
-    if msgtype in ('geometry_msgs/msg/PoseWithCovarianceStamped', 'nav_msgs/msg/Odometry'):
-        return msg.pose.pose  # type: ignore[attr-defined]
-    raise ValueError(f'unsupported ground-truth message type {msgtype}')
-
-
 def read_gt_from_bag(path: PathLike, topic: str = GT_TOPIC) -> tuple[np.ndarray, np.ndarray]:
-    """Read a ground-truth trajectory from a rosbag2 bag.
+    """Read a ground-truth trajectory from a rosbag2 bag (via bagio.read_ground_truth).
 
     The topic should carry ``geometry_msgs/msg/PoseStamped`` whose pose is ``T_world_cam``
-    (``PoseWithCovarianceStamped`` and ``nav_msgs/msg/Odometry`` are accepted too).  Time is
-    ``header.stamp``; messages with a zero stamp fall back to the bag receive time.
+    (``PoseWithCovarianceStamped``, ``nav_msgs/msg/Odometry`` and ``TransformStamped`` are
+    accepted too). Time is ``header.stamp``; messages with a zero stamp fall back to the bag
+    receive time.
 
     Args:
         path: bag directory (with metadata.yaml), or a single ``.mcap`` / ``.db3`` file.
@@ -185,41 +177,17 @@ def read_gt_from_bag(path: PathLike, topic: str = GT_TOPIC) -> tuple[np.ndarray,
         FileNotFoundError: missing bag.
         ValueError: topic absent, of an unsupported type, or without messages.
     """
-    from rosbags.rosbag2 import Reader
-    from rosbags.typesys import Stores, get_typestore
+    from .bagio import bag_topics, read_ground_truth
 
-    typestore = get_typestore(Stores.ROS2_JAZZY)
-    stamps: list[float] = []
-    t_rows: list[tuple[float, float, float]] = []
-    q_rows: list[tuple[float, float, float, float]] = []
-    n_fallback = 0
-    with Reader(Path(path)) as reader:
-        conns = [c for c in reader.connections if c.topic == topic]
-        if not conns:
-            available = sorted({f'{c.topic} [{c.msgtype}]' for c in reader.connections})
-            raise ValueError(f'topic {topic!r} not in bag {path}; available: {available}')
-        for conn, t_ns, raw in reader.messages(connections=conns):
-            msg = typestore.deserialize_cdr(raw, conn.msgtype)
-            pose = _pose_of(msg, conn.msgtype)
-            stamp = msg.header.stamp
-            if stamp.sec == 0 and stamp.nanosec == 0:
-                n_fallback += 1
-                stamps.append(t_ns * 1e-9)
-            else:
-                stamps.append(stamp.sec + 1e-9 * stamp.nanosec)
-            p, o = pose.position, pose.orientation
-            t_rows.append((p.x, p.y, p.z))
-            q_rows.append((o.x, o.y, o.z, o.w))
-    if not stamps:
+    topics = bag_topics(path)
+    if topic not in topics:
+        available = sorted(f'{t} [{m}]' for t, m in topics.items())
+        raise ValueError(f'topic {topic!r} not in bag {path}; available: {available}')
+    stamps_ns, T = read_ground_truth(path, topic)
+    if not len(stamps_ns):
         raise ValueError(f'topic {topic!r} in bag {path} has no messages')
-    if n_fallback:
-        logger.warning('%d/%d ground-truth messages had a zero header stamp; used bag time',
-                       n_fallback, len(stamps))
-    stamps_arr = np.asarray(stamps, dtype=np.float64)
-    T = poses_from_tum_rows(np.asarray(t_rows), np.asarray(q_rows))
-    order = np.argsort(stamps_arr, kind='stable')
-    logger.debug('read %d ground-truth poses from %s %s', stamps_arr.size, path, topic)
-    return stamps_arr[order], T[order]
+    logger.debug('read %d ground-truth poses from %s %s', len(stamps_ns), path, topic)
+    return stamps_ns * 1e-9, T
 
 
 def read_trajectory(path: PathLike, topic: str = GT_TOPIC) -> tuple[np.ndarray, np.ndarray]:
