@@ -28,10 +28,10 @@ params: $(STAMP)
 	$(BIN)/ekf-vo-params --yaml > config/ekf_vo.yaml
 
 bench: $(STAMP)
-	$(BIN)/python -m ekf_vo.bench.run_all --out bench/results
+	$(BIN)/python -m bench.run_all --out bench/results
 
 bench-quick: $(STAMP)
-	$(BIN)/python -m ekf_vo.bench.run_all --quick --out bench/results
+	$(BIN)/python -m bench.run_all --quick --out out/bench-quick
 
 clean:
 	rm -rf $(VENV) build install log out .pytest_cache

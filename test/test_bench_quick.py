@@ -11,8 +11,8 @@ import math
 
 import pytest
 
-from ekf_vo.bench import run_all
-from ekf_vo.bench.common import shared_data
+from bench import run_all
+from bench.common import shared_data
 
 pytestmark = pytest.mark.data
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ekf_vo.bench.common import shared_data
+from bench.common import shared_data
 from ekf_vo.tools import bagio, convert, synth
 from ekf_vo.tools.run import run_bag
 

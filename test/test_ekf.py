@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from ekf_vo.bench.synthetic import Sequence, run_ekf, smooth_orbit
+from bench.synthetic import Sequence, run_ekf, smooth_orbit
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.ekf import (ANG, POS, QUAT, STATE_DIM, VEL, CameraEKF, motion_jacobians,
                              motion_model)
@@ -136,7 +136,7 @@ def test_outliers_without_ransac_corrupt_the_plain_update():
     ekf = CameraEKF(K)
     T0, T1 = T[0], T[1]
     ekf.initialise(T1, (T1[:3, 3] - T0[:3, 3]) * 30, np.zeros(3), 1e-4, 0.05, 0.05)
-    from ekf_vo.bench.synthetic import project
+    from bench.synthetic import project
     errs = []
     for k in range(2, 30):
         ekf.predict(1 / 30, 2.0, 2.0)
@@ -154,7 +154,7 @@ def test_iterated_update_is_at_least_as_close_on_a_large_innovation():
     ekf.P += np.eye(STATE_DIM) * 1e-3
     T_true = ekf.T_world_cam.copy()
     T_true[:3, 3] += np.array([0.1, -0.05, 0.08])
-    from ekf_vo.bench.synthetic import project
+    from bench.synthetic import project
     z, _ = project(K, T_true, X)
     plain = CameraEKF(K)
     plain.x, plain.P = ekf.x.copy(), ekf.P.copy()

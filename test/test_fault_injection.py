@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import CameraInfo, Image
 
-from ekf_vo.bench.ros_harness import Feeder, Harness, NodeProcess, domain_id_for
-from ekf_vo.bench.speed import load_demo_frames
+from ekf_vo.ros.harness import Feeder, Harness, NodeProcess, domain_id_for
+from bench.speed import load_demo_frames
 from ekf_vo.ros import conversions as conv
 
 pytestmark = pytest.mark.ros

@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from ekf_vo.bench.synthetic import project, smooth_orbit
+from bench.synthetic import project, smooth_orbit
 from ekf_vo.config import VoConfig
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.camera import PinholeCamera

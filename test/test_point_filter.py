@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from ekf_vo.bench.synthetic import project, smooth_orbit
+from bench.synthetic import project, smooth_orbit
 from ekf_vo.config import ConfigError, VoConfig
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.ekf import STATE_DIM, CameraEKF

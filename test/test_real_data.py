@@ -1,13 +1,13 @@
 """The core offline on the real sequences of ../shared/data (skipped when it is absent).
 
-Accuracy targets with numbers live in the benchmark (python -m ekf_vo.bench.real_data);
+Accuracy targets with numbers live in the benchmark (python -m bench.real_data);
 these tests guard the behaviour the issue asks for, with the issue's own bounds.
 """
 import numpy as np
 import pytest
 
-from ekf_vo.bench.common import shared_data
-from ekf_vo.bench.real_data import run_sequence
+from bench.common import shared_data
+from bench.real_data import run_sequence
 
 pytestmark = pytest.mark.data
 

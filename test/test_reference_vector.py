@@ -1,8 +1,8 @@
 """Our EKF on the exact inputs the authors' EKFPnP saw (../shared/data/ekfpnp_synthetic_sigma3)."""
 import pytest
 
-from ekf_vo.bench.common import shared_data
-from ekf_vo.bench.reference_vector import run
+from bench.common import shared_data
+from bench.reference_vector import run
 
 pytestmark = pytest.mark.data
 

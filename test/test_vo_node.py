@@ -16,10 +16,10 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, PointCloud2
 from std_srvs.srv import Trigger
 
-from ekf_vo.bench.speed import load_demo_frames
+from bench.speed import load_demo_frames
 from ekf_vo.ros import conversions as conv
 
-from ekf_vo.bench.ros_harness import Feeder, Harness, NodeProcess, domain_id_for, encode
+from ekf_vo.ros.harness import Feeder, Harness, NodeProcess, domain_id_for, encode
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_id_for(__name__)
@@ -165,7 +165,7 @@ def test_bag_played_over_dds_with_sim_time(tmp_path):
     vo_node + map_node in one process using use_sim_time."""
     import threading
 
-    from ekf_vo.bench.speed import DEMO_BAG
+    from bench.speed import DEMO_BAG
     from ekf_vo.tools import bagio
     from ekf_vo.tools.play import play_bag
     topics = bagio.bag_topics(DEMO_BAG)

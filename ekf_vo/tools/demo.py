@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import PointCloud2
 
-    from ..bench.ros_harness import Harness, NodeProcess
+    from ekf_vo.ros.harness import Harness, NodeProcess
     from ..config import load_yaml_params, split_params
     from ..core import geometry as geo
     from ..core.frames import optical_to_body_extrinsic

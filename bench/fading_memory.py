@@ -18,7 +18,7 @@ Qi et al. 2016 tuned S on a two-axis turntable (360x240, 25 fps): (a) yaw 10 deg
 - heading (yaw of the optical axis) and pitch errors, mean |e| and max |e| over the run,
   averaged over seeds, for S = 1.000, 1.002, ..., 1.020.
 
-    python -m ekf_vo.bench.fading_memory [--quick] [--out DIR]
+    python -m bench.fading_memory [--quick] [--out DIR]
 """
 from __future__ import annotations
 
@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..core import geometry as geo
-from ..core.ekf import CameraEKF
-from ..core.ransac import robust_update
+from ekf_vo.core import geometry as geo
+from ekf_vo.core.ekf import CameraEKF
+from ekf_vo.core.ransac import robust_update
 from .common import write_json
 
 WIDTH, HEIGHT, F_TRUE = 360, 240, 300.0

@@ -15,7 +15,7 @@ Protocol, as METHOD.md states it:
 - noise sweep sigma = 0..5 px, 10 runs each, mean error over all poses;
 - NEES of the EKF's 6x6 pose covariance (6 dof: ideal mean 6).
 
-    python -m ekf_vo.bench.bunny [--quick] [--out DIR]
+    python -m bench.bunny [--quick] [--out DIR]
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from ..core.pnp import solve_epnp
+from ekf_vo.core.pnp import solve_epnp
 from .common import shared_data, write_json
 from .synthetic import Sequence, look_at, pose_error, project, run_ekf
 

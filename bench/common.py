@@ -11,7 +11,7 @@ import numpy as np
 
 #: ../shared/data relative to the repository root (overridable for other checkouts)
 SHARED_DATA = Path(os.environ.get(
-    'EKF_VO_SHARED_DATA', Path(__file__).resolve().parents[2].parent / 'shared' / 'data'))
+    'EKF_VO_SHARED_DATA', Path(__file__).resolve().parents[1].parent / 'shared' / 'data'))
 
 
 def shared_data(name: str) -> Path | None:

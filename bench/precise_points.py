@@ -12,7 +12,7 @@ in, monocular bootstrap, no ground truth):
 Sequences: a rendered synthetic room (tools/synth.py, 640x480, `walk`) and KITTI 06
 frames 0-50 when ../shared/data is present.
 
-    python -m ekf_vo.bench.precise_points [--quick] [--out DIR]
+    python -m bench.precise_points [--quick] [--out DIR]
 """
 from __future__ import annotations
 
@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import VoConfig
-from ..core.camera import PinholeCamera
-from ..core.pipeline import FrameResult, VisualOdometry
+from ekf_vo.config import VoConfig
+from ekf_vo.core.camera import PinholeCamera
+from ekf_vo.core.pipeline import FrameResult, VisualOdometry
 from .common import section_main, shared_data
 
 THRESHOLD_PX = 1.0
@@ -83,7 +83,7 @@ def summarise(frac: np.ndarray, n_pts: np.ndarray, errs: np.ndarray, n_frames: i
 
 
 def synthetic_frames(n: int):
-    from ..tools.synth import SynthConfig, render_sequence
+    from ekf_vo.tools.synth import SynthConfig, render_sequence
     cfg = SynthConfig(frames=n)
     camera = PinholeCamera(cfg.width, cfg.height, cfg.K())
     return ((stamp, img) for stamp, img, _ in render_sequence(cfg)), camera
@@ -97,7 +97,7 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
     res['synthetic_room']['what'] = f'rendered room, walk trajectory, {n} frames 640x480'
     folder = shared_data('kitti06_f0-50')
     if folder is not None:
-        from ..tools.dataset import load_folder
+        from ekf_vo.tools.dataset import load_folder
         from .real_data import PRESETS
         data = load_folder(folder)
         cfg = dataclasses.replace(VoConfig(), **PRESETS['kitti06_f0-50']).validate()

@@ -5,7 +5,7 @@ Wraps `real_data.compare` (the core offline, images in) on KITTI 06 frames 0-50
 views 1-48 (the paper's protocol: the first two ground-truth poses fix the scale), several
 seeds per estimator (RANSAC and the 1-point hypotheses are random), mean and std.
 
-    python -m ekf_vo.bench.real_compare [--quick] [--out DIR]
+    python -m bench.real_compare [--quick] [--out DIR]
 """
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ landmarks are not re-associated across laps, so new points keep arriving: the te
 that memory and time per frame stay flat anyway. Every 100 frames: resident set size
 (/proc/self/statm), peak RSS (getrusage), map size, frames/s of the last 100 frames.
 
-    python -m ekf_vo.bench.memory [--quick] [--out DIR]
+    python -m bench.memory [--quick] [--out DIR]
 """
 from __future__ import annotations
 
@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..config import VoConfig
-from ..core.camera import PinholeCamera
-from ..core.pipeline import VisualOdometry
+from ekf_vo.config import VoConfig
+from ekf_vo.core.camera import PinholeCamera
+from ekf_vo.core.pipeline import VisualOdometry
 from .common import section_main
 
 LOOP_FRAMES = 300
@@ -47,7 +47,7 @@ def loop_pose(k: int) -> np.ndarray:
 
 
 def render_loop() -> tuple[PinholeCamera, list[np.ndarray]]:
-    from ..tools.synth import SequenceRenderer, SynthConfig
+    from ekf_vo.tools.synth import SequenceRenderer, SynthConfig
     cfg = SynthConfig(frames=LOOP_FRAMES, rate=RATE_HZ)
     seq = SequenceRenderer(cfg)
     rng = np.random.default_rng(5)

@@ -18,7 +18,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-ROOT = Path(__file__).resolve().parents[2]
+
 
 
 def domain_id_for(module_name: str, base: int = 100, span: int = 50) -> int:
@@ -34,7 +34,7 @@ class NodeProcess:
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
         with open(log, 'wb') as out:
             self.proc = subprocess.Popen([sys.executable, '-m', module, '--ros-args',
-                                          *ros_args], cwd=ROOT, env=env, stdout=out,
+                                          *ros_args], env=env, stdout=out,
                                          stderr=subprocess.STDOUT)
 
     def output(self) -> str:
@@ -119,7 +119,7 @@ class Feeder:
         from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
-        from ..ros import conversions as conv
+        from ekf_vo.ros import conversions as conv
         self.conv = conv
         self.h, self.info = h, info
         qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core import geometry as geo
-from ..core.ekf import CameraEKF
-from ..core.ransac import robust_update
+from ekf_vo.core import geometry as geo
+from ekf_vo.core.ekf import CameraEKF
+from ekf_vo.core.ransac import robust_update
 
 
 @dataclass

@@ -6,7 +6,7 @@ keeps tracking, losing and re-bootstrapping for as long as asked. Every `--sampl
 it records the node process's resident memory (/proc/PID/status VmRSS), its frames/s,
 map size and counters from ~/status. Writes soak.json and soak.png; prints a summary.
 
-    python -m ekf_vo.bench.soak --frames 20000 --rate 60 --out bench/results/soak
+    python -m bench.soak --frames 20000 --rate 60 --out bench/results/soak
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .common import machine, write_json
-from .ros_harness import Feeder, Harness, NodeProcess
+from ekf_vo.ros.harness import Feeder, Harness, NodeProcess
 from .speed import load_demo_frames
 
 DOMAIN = 152
@@ -32,7 +32,7 @@ def rss_mb(pid: int) -> float:
 
 
 def soak(n_frames: int, rate_hz: float, out: Path, sample_every: int = 500) -> dict:
-    from ..ros import conversions as conv
+    from ekf_vo.ros import conversions as conv
     info, frames = load_demo_frames()
     cycle = frames + frames[::-1][1:-1]
     dt = frames[1][0] - frames[0][0]

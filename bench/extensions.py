@@ -15,7 +15,7 @@ precise-point ratio of Li et al. (mean over frames of the fraction of observed m
 reprojecting within 1 px under the estimated pose, precise_points.precise_fraction) and
 frames/s of the whole run (tracking, bootstrap and map included).
 
-    python -m ekf_vo.bench.extensions [--quick] [--seeds 3] [--out DIR]
+    python -m bench.extensions [--quick] [--seeds 3] [--out DIR]
 """
 from __future__ import annotations
 
@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import VoConfig
-from ..core.camera import PinholeCamera
-from ..core.pipeline import VisualOdometry
-from ..tools.evaluate import evaluate
+from ekf_vo.config import VoConfig
+from ekf_vo.core.camera import PinholeCamera
+from ekf_vo.core.pipeline import VisualOdometry
+from ekf_vo.tools.evaluate import evaluate
 from .common import machine, shared_data, write_json
 from .precise_points import precise_fraction
 
@@ -77,7 +77,7 @@ def run_frames(frames: list, camera: PinholeCamera, cfg: VoConfig, gt_s: np.ndar
 
 
 def _synthetic(trajectory: str, n_frames: int, seed: int):
-    from ..tools.synth import SynthConfig, render_sequence
+    from ekf_vo.tools.synth import SynthConfig, render_sequence
     scfg = SynthConfig(frames=n_frames, trajectory=trajectory, seed=seed)
     data = list(render_sequence(scfg))
     camera = PinholeCamera(scfg.width, scfg.height, scfg.K())
@@ -87,7 +87,7 @@ def _synthetic(trajectory: str, n_frames: int, seed: int):
 
 
 def _real(name: str):
-    from ..tools.dataset import load_folder
+    from ekf_vo.tools.dataset import load_folder
     from .real_data import GT_BOOTSTRAP
     folder = shared_data(name)
     if folder is None:

@@ -4,7 +4,7 @@ KITTI 06 frames 0-50: monocular bootstrap from the images (scale arbitrary), ATE
 Sim(3) alignment. Middlebury dino: the paper's protocol, two-view bootstrap from the
 ground truth of the first two views (fixes the scale), then EKF vs EPnP.
 
-    python -m ekf_vo.bench.real_data kitti06_f0-50 [--estimator ekf|iekf|epnp]
+    python -m bench.real_data kitti06_f0-50 [--estimator ekf|iekf|epnp]
 """
 from __future__ import annotations
 
@@ -15,11 +15,11 @@ import time
 
 import numpy as np
 
-from ..config import VoConfig
-from ..core.camera import PinholeCamera
-from ..core.pipeline import VisualOdometry
-from ..tools.dataset import load_folder
-from ..tools.evaluate import evaluate
+from ekf_vo.config import VoConfig
+from ekf_vo.core.camera import PinholeCamera
+from ekf_vo.core.pipeline import VisualOdometry
+from ekf_vo.tools.dataset import load_folder
+from ekf_vo.tools.evaluate import evaluate
 from .common import shared_data
 
 #: settings per sequence (documented deviations from the defaults, and why)

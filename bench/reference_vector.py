@@ -8,7 +8,7 @@ averaged over frames 1..199. Our filter differs from the reference in what METHO
 variances (not standard deviations) on R, full covariance (no zeroed cross terms), Joseph
 form, process Jacobians at the prior.
 
-    python -m ekf_vo.bench.reference_vector [--sigma-mode per_point|frame|reference]
+    python -m bench.reference_vector [--sigma-mode per_point|frame|reference]
 """
 from __future__ import annotations
 
@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core import geometry as geo
-from ..core.ekf import CameraEKF
+from ekf_vo.core import geometry as geo
+from ekf_vo.core.ekf import CameraEKF
 from .common import shared_data
 
 METHODS = ('EKFPnP', 'EPnP_GN', 'EPnP', 'MLPnP', 'CEPPnP', 'OPnP', 'RPnP', 'ASPnP')

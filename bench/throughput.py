@@ -6,7 +6,7 @@ Wraps `speed.time_core` at 640x480 (the bundled demo bag, 300 frames) and 1226x3
 30 Hz over DDS, publish -> odometry delay). The latency part needs ROS 2 (rclpy); it is
 reported as skipped with the reason when it cannot run.
 
-    python -m ekf_vo.bench.throughput [--quick] [--out DIR]
+    python -m bench.throughput [--quick] [--out DIR]
 """
 from __future__ import annotations
 

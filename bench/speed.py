@@ -3,7 +3,7 @@
 640x480: the bundled demo bag (synthetic hand-held, 30 Hz). 1226x370: KITTI 06 f0-50 when
 ../shared/data is present. Times are wall-clock on this machine, single process.
 
-    python -m ekf_vo.bench.speed [--repeat 3]
+    python -m bench.speed [--repeat 3]
 """
 from __future__ import annotations
 
@@ -14,17 +14,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import VoConfig
-from ..core.camera import PinholeCamera
-from ..core.pipeline import VisualOdometry
+from ekf_vo.config import VoConfig
+from ekf_vo.core.camera import PinholeCamera
+from ekf_vo.core.pipeline import VisualOdometry
 from .common import machine, shared_data
 
-DEMO_BAG = Path(__file__).resolve().parents[2] / 'bags' / 'demo'
+DEMO_BAG = Path(__file__).resolve().parents[1] / 'bags' / 'demo'
 
 
 def load_demo_frames(bag: Path = DEMO_BAG) -> tuple[dict, list]:
-    from ..ros import conversions as conv   # message field access only, no rclpy import
-    from ..tools import bagio
+    from ekf_vo.ros import conversions as conv   # message field access only, no rclpy import
+    from ekf_vo.tools import bagio
     info, frames = None, []
     for _, msgtype, _, msg in bagio.iter_bag(bag):
         if msgtype.endswith('CameraInfo') and info is None:
@@ -36,7 +36,7 @@ def load_demo_frames(bag: Path = DEMO_BAG) -> tuple[dict, list]:
 
 
 def load_kitti_frames() -> tuple[dict, list] | None:
-    from ..tools.dataset import load_folder
+    from ekf_vo.tools.dataset import load_folder
     folder = shared_data('kitti06_f0-50')
     if folder is None:
         return None

@@ -5,7 +5,7 @@ the demo bag's frames as mono8 Images at 30 Hz like a camera driver and times, p
 the publish-to-odometry delay over DDS (end to end) and reads the node's own
 receive-to-publish figures from ~/status.
 
-    python -m ekf_vo.bench.latency [--frames 300] [--rate 30]
+    python -m bench.latency [--frames 300] [--rate 30]
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .common import machine
-from .ros_harness import Feeder, Harness, NodeProcess
+from ekf_vo.ros.harness import Feeder, Harness, NodeProcess
 from .speed import load_demo_frames
 
 DOMAIN = 151
@@ -33,7 +33,7 @@ def measure(frames: int = 300, rate_hz: float = 30.0) -> dict:
         vo.wait_for_output('vo_node ready')
         h = Harness(DOMAIN, 'latency_bench')
         try:
-            from ..ros import conversions as conv
+            from ekf_vo.ros import conversions as conv
             feed = Feeder(h, info, reliable=False)
             feed.wait_connected()
             stamps = feed.publish(frames_used, lambda k, s, g: conv.numpy_to_image(

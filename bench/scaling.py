@@ -13,7 +13,7 @@ does): z = h(camera, points), H = [H_cam | blockdiag(H_point_i)], S = H P H^T + 
 K = P H^T S^-1 (Cholesky), x += K y, P = P - K S K^T. A correctness check: with
 zero point covariance its camera estimate equals the camera-only update's.
 
-    python -m ekf_vo.bench.scaling [--quick] [--out DIR]
+    python -m bench.scaling [--quick] [--out DIR]
 """
 from __future__ import annotations
 
@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from ..core import geometry as geo
-from ..core.ekf import POS, QUAT, STATE_DIM, CameraEKF
+from ekf_vo.core import geometry as geo
+from ekf_vo.core.ekf import POS, QUAT, STATE_DIM, CameraEKF
 from .common import write_json
 
 N_POINTS = (50, 100, 200, 500, 1000, 2000, 5000)
@@ -133,9 +133,9 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
         env = dict(os.environ, OPENBLAS_NUM_THREADS='1', OMP_NUM_THREADS='1',
                    MKL_NUM_THREADS='1')
         with tempfile.TemporaryDirectory() as tmp:
-            cmd = [sys.executable, '-m', 'ekf_vo.bench.scaling', '--measure-only',
+            cmd = [sys.executable, '-m', 'bench.scaling', '--measure-only',
                    '--out', tmp] + (['--quick'] if quick else [])
-            subprocess.run(cmd, env=env, check=True, cwd=Path(__file__).resolve().parents[2])
+            subprocess.run(cmd, env=env, check=True, cwd=Path(__file__).resolve().parents[1])
             res = json.loads((Path(tmp) / 'scaling.json').read_text())
     res['blas_threads'] = 1
     if out is not None:

@@ -7,7 +7,7 @@ on `synthetic.smooth_orbit` (6 m radius, all six DoF varying, 30 Hz, 200 frames)
 pixel noise, exact map, ground-truth start (bench.synthetic.run_ekf); the bunny section
 adds the same figure on the paper's bunny path.
 
-    python -m ekf_vo.bench.consistency [--quick]
+    python -m bench.consistency [--quick]
 """
 from __future__ import annotations
 
