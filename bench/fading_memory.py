@@ -23,15 +23,18 @@ Qi et al. 2016 tuned S on a two-axis turntable (360x240, 25 fps): (a) yaw 10 deg
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ekf_vo.config import VoConfig
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.ekf import CameraEKF
-from ekf_vo.core.ransac import robust_update
+from ekf_vo.core.observation import ReprojectionModel
+from ekf_vo.core.robust_update import RansacSettings, robust_update
 from .common import write_json
 
 WIDTH, HEIGHT, F_TRUE = 360, 240, 300.0
@@ -49,6 +52,15 @@ SCENARIOS = {'a_yaw10': (10.0, 0.0), 'b_yaw20_pitch20': (20.0, 20.0), 'c_yaw70':
 PAPER = {'best_S': 1.009, 'b_heading_reduction_deg': 2.4158, 'b_pitch_reduction_deg': 0.1782,
          'c_heading_max_with_S_deg': 1.5, 'c_heading_plain_exceeds_deg': 4.0}
 #: optical axes in the body frame (body x forward, y left, z up): columns x, y, z optical
+#: the robust update as the product configures it, and its plain chi-square-gate variant
+RANSAC = RansacSettings.from_config(VoConfig())
+GATE_ONLY = dataclasses.replace(RANSAC, one_point=False)
+
+
+def _model(K: np.ndarray, X: np.ndarray) -> ReprojectionModel:
+    return ReprojectionModel.of_map_points(K, X)
+
+
 R_BODY_OPT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
@@ -117,13 +129,14 @@ def run_filter(T: np.ndarray, stamps: np.ndarray, X: np.ndarray, S: float, seed:
         px, vis = observe(T[k], X, K_true, k1)
         z = px[vis] + rng.normal(0.0, NOISE_PX, (int(vis.sum()), 2))
         try:
-            r = robust_update(ekf, z, X[vis], FILTER_SIGMA_PX, rng, one_point=True)
+            ekf.x, ekf.P, r = robust_update(ekf.x, ekf.P, z, _model(K_filt, X[vis]),
+                                            FILTER_SIGMA_PX, rng, RANSAC)
         except OverflowError:
-            # core/ransac.py bug: when the best 1-point hypothesis has zero support the
-            # adaptive hypothesis count divides by log(1) = 0; fall back to the plain
-            # chi-square-gated update for this frame and count it
+            # kept as a guard: a 1-point RANSAC failure falls back to the plain
+            # chi-square-gated update for this frame and is counted
             n_fallback += 1
-            r = robust_update(ekf, z, X[vis], FILTER_SIGMA_PX, rng, one_point=False)
+            ekf.x, ekf.P, r = robust_update(ekf.x, ekf.P, z, _model(K_filt, X[vis]),
+                                            FILTER_SIGMA_PX, rng, GATE_ONLY)
         n_inl.append(r.n_inliers / max(1, len(z)))
         h_est, p_est = heading_pitch_deg(ekf.R_world_cam)
         h_gt, p_gt = heading_pitch_deg(T[k, :3, :3])

@@ -90,7 +90,7 @@ def run(folder: Path, sigma_mode: str = 'frame', accel_sigma: float = 0.05,
             else:   # the reference's scalar on the diagonal of R, used as a std
                 sigma = max(float(gt[frame, 17]), 0.05)
             t0 = time.perf_counter()
-            ekf.predict(1.0, accel_sigma, angular_accel_sigma)
+            ekf.predict(1.0, accel_sigma, angular_accel_sigma, 1.0)
             ekf.update(z, X_world_all[ids], sigma, iterations)
             times.append((time.perf_counter() - t0) * 1e3)
         T_cw = geo.invert_T(ekf.T_world_cam)

@@ -105,6 +105,9 @@ class VoConfig(_Params):
         2.0, 'multi_view: a frame becomes a keyframe when the median parallax of the map '
         'points against the last keyframe exceeds this.', 'deg', 0.1, 45.0,
         group='bootstrap')
+    multiview_ba_huber_px: float = param(
+        1.0, 'multi_view: width of the Huber loss of the bundle adjustment (residuals '
+        'beyond it are down-weighted as outliers).', 'px', 0.01, 50.0, group='bootstrap')
     multiview_ba_max_evaluations: int = param(
         200, 'multi_view: residual evaluations allowed to the bundle adjustment.', 'count',
         1, 10000, group='bootstrap')
@@ -116,7 +119,8 @@ class VoConfig(_Params):
     iekf_iterations: int = param(2, 'Iterations of the iterated EKF update.', 'count', 1, 20,
                                  group='ekf')
     pixel_sigma_px: float = param(
-        1.0, 'Standard deviation of a feature measurement.', 'px', 0.01, 50.0, group='ekf')
+        1.0, 'Standard deviation of a feature measurement: the R of the EKF update and '
+        'the noise of the EPnP baseline\'s covariance.', 'px', 0.01, 50.0, group='ekf')
     accel_sigma: float = param(
         5.0, 'Linear acceleration impulse std: velocity noise a*dt per step (METHOD.md 1).',
         'm/s^2', 1e-6, 1e4, group='ekf')
@@ -198,6 +202,10 @@ class VoConfig(_Params):
     filter_init_rho_rel_sigma: float = param(
         1.0, 'Initial inverse-depth std relative to 1/d_guess (>= 0.51 puts rho = 0, '
         'infinity, inside the 95% region).', '', 0.01, 100.0, group='refinement')
+    filter_ray_sigma_px: float = param(
+        1.0, 'Pixel std of the first observation that fixes a filter point\'s anchor ray; '
+        'its angular error bounds how accurate the point can become (freezing test).',
+        'px', 0.01, 50.0, group='refinement')
 
     # ---- tracking quality (ekf_vo/core/pipeline.py) ----
     min_tracking_inliers: int = param(

@@ -5,7 +5,7 @@ from ekf_vo.core.map import LandmarkMap
 
 
 def test_lookup_and_changes():
-    m = LandmarkMap(max_points=100)
+    m = LandmarkMap(max_points=100, cull_after_misses=3)
     m.add(np.array([5, 7, 9]), np.arange(9.0).reshape(3, 3), frame_index=0)
     mask, X = m.lookup(np.array([1, 7, 9]))
     assert mask.tolist() == [False, True, True]
@@ -33,7 +33,7 @@ def test_repeated_outliers_are_culled_and_reported():
 
 
 def test_size_stays_bounded_oldest_unseen_first():
-    m = LandmarkMap(max_points=50)
+    m = LandmarkMap(max_points=50, cull_after_misses=3)
     for frame in range(40):
         ids = np.arange(frame * 10, frame * 10 + 10)
         m.add(ids, np.random.default_rng(frame).normal(size=(10, 3)), frame)

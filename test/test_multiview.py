@@ -4,7 +4,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from bench.synthetic import project, smooth_orbit
 from ekf_vo.config import VoConfig
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.camera import PinholeCamera
@@ -12,6 +11,7 @@ from ekf_vo.core.multiview import MultiViewBootstrap, bundle_adjust
 from ekf_vo.core.pipeline import VisualOdometry
 from ekf_vo.tools.evaluate import evaluate
 from ekf_vo.tools.synth import SynthConfig, render_sequence
+from ekf_vo.tools.synth_points import project, smooth_orbit
 
 K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
 
@@ -82,6 +82,7 @@ def test_bundle_adjustment_reduces_the_error_and_recovers_the_scene():
 def test_multi_view_bootstrap_from_tracks_recovers_the_scene():
     T, stamps, X, obs = _scene(seed=2)
     cfg = dataclasses.replace(VoConfig(), multiview_keyframes=5, pixel_sigma_px=0.5,
+                              multiview_ba_huber_px=0.5,
                               multiview_keyframe_parallax_deg=4.0,
                               multiview_ba_max_evaluations=1000)
     mv = MultiViewBootstrap(cfg, K)

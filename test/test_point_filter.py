@@ -5,11 +5,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from bench.synthetic import project, smooth_orbit
 from ekf_vo.config import ConfigError, VoConfig
 from ekf_vo.core import geometry as geo
-from ekf_vo.core.ekf import STATE_DIM, CameraEKF
-from ekf_vo.core.point_filter import Measurements, PointFilter, joint_update
+from ekf_vo.core.ekf import STATE_DIM, CameraEKF, update
+from ekf_vo.core.estimators import FrameMatches, JointEstimator
+from ekf_vo.core.observation import ReprojectionModel
+from ekf_vo.core.point_filter import PointFilter
+from ekf_vo.tools.synth_points import project, smooth_orbit
 
 K = np.array([[500.0, 0, 320], [0, 520.0, 240], [0, 0, 1]])
 
@@ -31,7 +33,7 @@ def _joint_setup(seed):
     rays = targets - c
     depth = np.linalg.norm(rays, axis=1)
     x[STATE_DIM:] = 1.0 / depth
-    meas = Measurements(K, np.concatenate((X_map, np.repeat(c[None], n_pts, 0))),
+    meas = ReprojectionModel(K, np.concatenate((X_map, np.repeat(c[None], n_pts, 0))),
                         np.concatenate((np.zeros((n_map, 3)), rays / depth[:, None])),
                         np.concatenate((np.full(n_map, -1), STATE_DIM + np.arange(n_pts))))
     return x, meas, targets
@@ -68,7 +70,9 @@ def test_inverse_depth_jacobians_match_finite_differences(seed):
         assert np.all(Hn[12 + j][:, others] == 0) and np.any(Hn[12 + j][:, STATE_DIM + j])
 
 
-def test_joint_update_without_points_is_the_camera_ekf_update():
+def test_joint_update_with_unobserved_points_is_the_camera_ekf_update():
+    """Points in the state that are neither observed nor correlated with the camera leave
+    the camera's update unchanged: the camera part equals the camera-only update."""
     x, meas, _ = _joint_setup(4)
     ekf = CameraEKF(K)
     ekf.initialise(geo.make_T(geo.quat_to_matrix(x[3:7]), x[0:3]), x[7:10], x[10:13],
@@ -76,11 +80,16 @@ def test_joint_update_without_points_is_the_camera_ekf_update():
     rng = np.random.default_rng(0)
     X = meas.anchor[:12]
     z = ekf.observe(X, with_jacobian=False)[0] + rng.normal(size=(12, 2))
-    map_only = Measurements(K, X, np.zeros((12, 3)), np.full(12, -1))
-    x1, P1, st = joint_update(ekf.x.copy(), ekf.P.copy(), z, map_only, np.full(12, 1.5), 2)
+    n_pts = len(x) - STATE_DIM
+    P_joint = np.zeros((len(x), len(x)))
+    P_joint[:STATE_DIM, :STATE_DIM] = ekf.P
+    P_joint[STATE_DIM:, STATE_DIM:] = np.eye(n_pts) * 0.01
+    x_joint = np.concatenate((ekf.x, x[STATE_DIM:]))
+    x1, P1, st = update(x_joint, P_joint, z, meas.subset(np.arange(12)), np.full(12, 1.5), 2)
     ekf.update(z, X, 1.5, iterations=2)
-    assert np.allclose(x1, ekf.x, atol=1e-10)
-    assert np.allclose(P1, ekf.P, atol=1e-12)
+    assert np.allclose(x1[:STATE_DIM], ekf.x, atol=1e-10)
+    assert np.allclose(P1[:STATE_DIM, :STATE_DIM], ekf.P, atol=1e-12)
+    assert np.allclose(P1[STATE_DIM:, STATE_DIM:], np.eye(n_pts) * 0.01, atol=1e-15)
     assert st.nis == pytest.approx(ekf.last_update.nis)
 
 
@@ -104,13 +113,17 @@ def _simulate(n_frames=500, sigma_px=0.5, N=40, m=4, seed=0, rel_std=0.005):
     dt0 = stamps[1] - stamps[0]
     w = geo.quat_to_rotvec(geo.matrix_to_quat(T0[:3, :3].T @ T1[:3, :3])) / dt0
     ekf.initialise(T1, (T1[:3, 3] - T0[:3, 3]) / dt0, w, 1e-4, 0.05, 0.05)
-    pf = PointFilter(K, max_points=N, retire_count=m, max_rel_depth_std=rel_std,
-                     max_observations=400, ray_sigma_px=sigma_px)
+    cfg = dataclasses.replace(
+        VoConfig(), map_refinement='filter', filter_max_points=N, filter_retire_count=m,
+        filter_max_rel_depth_std=rel_std, filter_max_observations=400,
+        filter_ray_sigma_px=sigma_px, pixel_sigma_px=sigma_px, accel_sigma=2.0,
+        angular_accel_sigma=2.0, fading_memory=1.0)
+    pf = PointFilter(cfg, K)
+    estimator = JointEstimator(cfg, ekf, pf)
     frozen, gone, dims = {}, set(), []
     for k in range(2, n_frames):
         dt = stamps[k] - stamps[k - 1]
-        pf.predict(ekf.x, dt)
-        ekf.predict(dt, 2.0, 2.0)
+        estimator.predict(dt)
         px_m, d_m = project(K, T_all[k], X_map)
         px_n, d_n = project(K, T_all[k], X_new)
         vis_m = (d_m > 0.1) & np.all((px_m > 0) & (px_m < [640, 480]), axis=1)
@@ -119,7 +132,7 @@ def _simulate(n_frames=500, sigma_px=0.5, N=40, m=4, seed=0, rel_std=0.005):
         z_n = px_n + rng.normal(0, sigma_px, px_n.shape)
         rows = pf.rows_of(ids_new)
         obs = np.flatnonzero(vis_n & (rows >= 0))
-        pf.robust_update(ekf, z_m, X_map[vis_m], z_n[obs], rows[obs], sigma_px, rng)
+        estimator.update(FrameMatches(z_m, X_map[vis_m], z_n[obs], rows[obs]), rng)
         out = pf.retire(ids_new[vis_n], ekf.x[:3])
         for tid, X in zip(out.frozen_ids, out.frozen_X):
             frozen[int(tid)] = (X, k)
@@ -162,3 +175,29 @@ def test_frozen_points_match_the_true_positions(long_run):
     rel = np.array(rel)
     assert np.median(rel) < 0.01
     assert np.percentile(rel, 95) < 0.02
+
+
+def test_joint_update_with_every_match_an_outlier_uses_nothing_and_does_not_raise():
+    """Regression: with map_refinement: filter, a frame whose matches are all outliers
+    gives no 1-point hypothesis any support (eps = 0); the adaptive hypothesis count used
+    to divide by log(1) = 0 and raise OverflowError out of the pipeline."""
+    x, meas, _ = _joint_setup(5)
+    cfg = dataclasses.replace(VoConfig(), map_refinement='filter')
+    ekf = CameraEKF(K)
+    ekf.initialise(geo.make_T(geo.quat_to_matrix(x[3:7]), x[0:3]), x[7:10], x[10:13],
+                   0.01, 0.1, 0.1)
+    pf = PointFilter(cfg, K)
+    depth_guess = float(1.0 / np.median(x[STATE_DIM:]))
+    pf.add(np.arange(6), ekf.observe(meas.anchor[:6], with_jacobian=False)[0],
+           ekf.T_world_cam, depth_guess, 0)
+    estimator = JointEstimator(cfg, ekf, pf)
+    rng = np.random.default_rng(0)
+    X = meas.anchor[:12]
+    px = ekf.observe(X, with_jacobian=False)[0]
+    far = rng.uniform(200, 400, px.shape) * rng.choice([-1, 1], px.shape)
+    z_pts = np.full((6, 2), 5000.0)
+    x_before, n_obs_before = ekf.x.copy(), pf.n_obs.copy()
+    out = estimator.update(FrameMatches(px + far, X, z_pts, np.arange(6)), rng)
+    assert not out.map_inliers.any() and not out.point_inliers.any()
+    assert np.array_equal(ekf.x, x_before)
+    assert np.array_equal(pf.n_obs, n_obs_before) and np.all(pf.misses == 1)

@@ -31,7 +31,7 @@ class MapChanges:
 class LandmarkMap:
     """Sparse map: ids (N,) int64, X_world (N,3), observation bookkeeping."""
 
-    def __init__(self, max_points: int = 5000, cull_after_misses: int = 3) -> None:
+    def __init__(self, max_points: int, cull_after_misses: int) -> None:
         self.max_points = int(max_points)
         self.cull_after_misses = int(cull_after_misses)
         self.clear()

@@ -81,7 +81,7 @@ class BundleResult:
 
 def bundle_adjust(T_world_cam: np.ndarray, X_world: np.ndarray, cam_idx: np.ndarray,
                   pt_idx: np.ndarray, px: np.ndarray, K: np.ndarray,
-                  huber_px: float = 1.0, max_evaluations: int = 60) -> BundleResult:
+                  huber_px: float, max_evaluations: int) -> BundleResult:
     """Sparse bundle adjustment of k >= 2 poses and m points from o observations.
 
     T_world_cam (k,4,4) initial poses; X_world (m,3); observation j is point pt_idx[j]
@@ -334,7 +334,7 @@ class MultiViewBootstrap:
         obs = np.array(obs, float).reshape(-1, 2)
         T = np.stack([kf.T_world_cam for kf in kfs])
         ba = bundle_adjust(T, X0, cam_idx, pt_idx, obs, self.K,
-                           huber_px=c.pixel_sigma_px,
+                           huber_px=c.multiview_ba_huber_px,
                            max_evaluations=c.multiview_ba_max_evaluations)
         # keep points seen >= 2 times, every observation within the triangulation gate
         bad = np.zeros(len(pid), bool)

@@ -27,13 +27,12 @@ from ..config import VoConfig
 from . import geometry as geo
 from .bootstrap import TwoViewBootstrap
 from .camera import PinholeCamera
-from .ekf import POS, QUAT, VEL, CameraEKF, FilterError
+from .ekf import POS, VEL, CameraEKF, FilterError
+from .estimators import FrameMatches, make_estimator
 from .features import FeatureTracker, Tracks
 from .map import LandmarkMap
 from .multiview import MultiViewBootstrap
-from .pnp import solve_epnp
 from .point_filter import PointFilter
-from .ransac import robust_update
 from .triangulation import triangulate_points
 
 logger = logging.getLogger(__name__)
@@ -102,7 +101,8 @@ class VisualOdometry:
         # in-filter map refinement (METHOD.md sec. 3); None = the hybrid default
         self.points: PointFilter | None = None
         if cfg.map_refinement == 'filter' and cfg.estimator != 'epnp':
-            self.points = PointFilter.from_config(cfg, camera.K)
+            self.points = PointFilter(cfg, camera.K)
+        self.estimator = make_estimator(cfg, self.ekf, self.points)
         self.frame_index = -1
         self.n_resets = 0
         self._anchor_T_world_cam = np.eye(4)   # where a new map is attached
@@ -306,10 +306,7 @@ class VisualOdometry:
             dt = c.default_dt_s
 
         t = time.perf_counter()
-        if self.points is not None:
-            # cross-covariance camera/points, with F at the prior state: before the predict
-            self.points.predict(self.ekf.x, dt, c.fading_memory)
-        self.ekf.predict(dt, c.accel_sigma, c.angular_accel_sigma, c.fading_memory)
+        self.estimator.predict(dt)
         # predicted landmark pixels = the KLT initial guess (active search, Davison 2003)
         prev_ids = self._prev_ids
         mask, X_prev = self.map.lookup(prev_ids)
@@ -335,25 +332,8 @@ class VisualOdometry:
             rows, X = rows[keep], X[keep]
         res = FrameResult(stamp_ns, TrackingState.TRACKING, n_tracks=len(tracks),
                           n_matches=len(rows), timings_ms=timings)
-        inlier_rows = np.zeros(0, np.int64)
         try:
-            if c.estimator == 'epnp':
-                inlier_rows = rows[self._epnp_update(px[rows], X, tracks.ids[rows], dt)]
-            elif self.points is not None:
-                inlier_rows = self._joint_update(tracks, px, rows, X)
-            else:
-                out = robust_update(
-                    self.ekf, px[rows], X, c.pixel_sigma_px, self.rng,
-                    one_point=c.one_point_ransac, inlier_px=c.ransac_inlier_px,
-                    probability=c.ransac_probability,
-                    max_hypotheses=c.ransac_max_hypotheses,
-                    gate_probability=c.gate_probability,
-                    iterations=c.iekf_iterations if c.estimator == 'iekf' else 1)
-                inlier_rows = rows[out.inliers]
-                if len(rows):
-                    culled = self.map.record_observations(
-                        tracks.ids[rows], out.inliers, self.frame_index)
-                    self._banned.update(int(i) for i in culled)
+            inlier_rows = self._update(tracks, px, rows, X)
         except (FilterError, np.linalg.LinAlgError) as exc:
             self.reset(f'filter failure: {exc}')
             res.state, res.message = self.state, f'lost: {exc}'
@@ -413,23 +393,23 @@ class VisualOdometry:
             return ids, px_pred
         return np.concatenate((predicted[0], ids)), np.concatenate((predicted[1], px_pred))
 
-    def _joint_update(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
-                      X: np.ndarray) -> np.ndarray:
-        """1-point RANSAC update of camera + in-filter points (point_filter.py) with the
-        map matches `rows` and the tracked filter points. Returns the inlier track rows."""
-        c = self.cfg
-        pt_rows = self.points.rows_of(tracks.ids)
-        f_tracks = np.flatnonzero(pt_rows >= 0)
-        map_in, pt_in, _ = self.points.robust_update(
-            self.ekf, px[rows], X, px[f_tracks], pt_rows[f_tracks], c.pixel_sigma_px,
-            self.rng, one_point=c.one_point_ransac, inlier_px=c.ransac_inlier_px,
-            probability=c.ransac_probability, max_hypotheses=c.ransac_max_hypotheses,
-            gate_probability=c.gate_probability,
-            iterations=c.iekf_iterations if c.estimator == 'iekf' else 1)
+    def _update(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
+                X: np.ndarray) -> np.ndarray:
+        """The estimator's update (estimators.py) with the map matches `rows` and, with
+        map_refinement: filter, the tracked in-filter points; records the map points'
+        verdicts (culling). Returns the inlier track rows."""
+        matches = FrameMatches(px[rows], X)
+        f_tracks = np.zeros(0, np.int64)
+        if self.points is not None:
+            pt_rows = self.points.rows_of(tracks.ids)
+            f_tracks = np.flatnonzero(pt_rows >= 0)
+            matches.z_points, matches.point_rows = px[f_tracks], pt_rows[f_tracks]
+        out = self.estimator.update(matches, self.rng)
         if len(rows):
-            culled = self.map.record_observations(tracks.ids[rows], map_in, self.frame_index)
+            culled = self.map.record_observations(tracks.ids[rows], out.map_inliers,
+                                                  self.frame_index)
             self._banned.update(int(i) for i in culled)
-        return np.concatenate((rows[map_in], f_tracks[pt_in]))
+        return np.concatenate((rows[out.map_inliers], f_tracks[out.point_inliers]))
 
     def _refine_points(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
                        X: np.ndarray, T_world_cam: np.ndarray) -> tuple[int, np.ndarray]:
@@ -460,33 +440,6 @@ class VisualOdometry:
                 for tid in tracks.ids[new]:
                     self._drop_candidate(int(tid))
         return len(out.frozen_ids), in_map | in_filter
-
-    def _epnp_update(self, z: np.ndarray, X: np.ndarray, ids: np.ndarray,
-                     dt: float) -> np.ndarray:
-        """Baseline: overwrite the pose with per-frame EPnP+LM (velocity by difference).
-
-        Returns the (n,) inlier mask of the matches."""
-        pnp = solve_epnp(z, X, self.camera.K, self.cfg.pixel_sigma_px,
-                         self.cfg.ransac_inlier_px)
-        if not pnp.ok:
-            return np.zeros(len(z), bool)
-        prev = self._T_world_cam_at.get(self.frame_index - 1)
-        x = self.ekf.x
-        if prev is not None:
-            x[VEL] = (pnp.T_world_cam[:3, 3] - prev[:3, 3]) / dt
-        x[POS] = pnp.T_world_cam[:3, 3]
-        x[QUAT] = geo.matrix_to_quat(pnp.T_world_cam[:3, :3])
-        P = self.ekf.P
-        P[:, :7] = 0.0
-        P[:7, :] = 0.0
-        P[POS, POS] = pnp.pose_cov[:3, :3]
-        Jq = 0.5 * geo.quat_right_matrix(x[QUAT])[:, 1:]
-        P[QUAT, QUAT] = Jq @ pnp.pose_cov[3:, 3:] @ Jq.T
-        P[POS, QUAT] = pnp.pose_cov[:3, 3:] @ Jq.T
-        P[QUAT, POS] = P[POS, QUAT].T
-        self._banned.update(int(i) for i in self.map.record_observations(
-            ids, pnp.inliers, self.frame_index))
-        return pnp.inliers
 
     # ------------------------------------------------------------------ map growth
     def _add_candidate(self, tid: int, frame_index: int, px_ideal: np.ndarray,

@@ -29,7 +29,7 @@ class PnPResult:
 
 
 def solve_epnp(z_px: np.ndarray, X_world: np.ndarray, K: np.ndarray, sigma_px: float,
-               ransac_px: float = 2.0, refine: bool = True) -> PnPResult:
+               ransac_px: float, refine: bool = True) -> PnPResult:
     """Pose of the camera from n >= 6 matches (ideal pixels (n,2), points (n,3))."""
     n = len(z_px)
     if n < 6:

@@ -1,0 +1,127 @@
+"""The one place that chooses how a tracked frame moves the filter: ekf | iekf | joint | epnp.
+
+Every estimator owns the prediction and the update of the filter state behind one
+interface, so the pipeline (pipeline.py) never branches on the estimator:
+
+    predict(dt)            propagate the state over dt seconds (docs/method.md §3)
+    update(matches, rng)   use this frame's 2D-3D matches; returns which were inliers
+
+- EkfEstimator   `estimator: ekf | iekf`, `map_refinement: none`: the hybrid camera-only
+                 filter, the robust update (robust_update.py) over the fixed map points
+                 (§5, §6); iekf = iterated update.
+- JointEstimator `map_refinement: filter`: the same robust update on the joint state
+                 camera + in-filter inverse depths (point_filter.py, §8).
+- EpnpEstimator  `estimator: epnp`: the paper's baseline; each frame's pose is
+                 overwritten by EPnP + refinement on that frame alone (pnp.py, §9).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import VoConfig
+from .ekf import VEL, CameraEKF
+from .observation import ReprojectionModel
+from .pnp import solve_epnp
+from .point_filter import PointFilter
+from .robust_update import RansacSettings, robust_update
+
+
+@dataclass
+class FrameMatches:
+    """One frame's measurements: map points, then in-filter points (ideal pixels)."""
+
+    z_map: np.ndarray                 #: (a,2) pixels of the matched map points
+    X_map: np.ndarray                 #: (a,3) their fixed world positions
+    z_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  #: (b,2)
+    point_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  #: (b,)
+
+
+@dataclass
+class UpdateOutcome:
+    """Inlier verdicts of one update, in the order of FrameMatches."""
+
+    map_inliers: np.ndarray           #: (a,) bool
+    point_inliers: np.ndarray         #: (b,) bool
+
+
+class EkfEstimator:
+    """Hybrid camera-only EKF / IEKF with the robust update over fixed map points."""
+
+    def __init__(self, cfg: VoConfig, ekf: CameraEKF) -> None:
+        self.cfg, self.ekf = cfg, ekf
+        self.settings = RansacSettings.from_config(cfg)
+
+    def predict(self, dt: float) -> None:
+        c = self.cfg
+        self.ekf.predict(dt, c.accel_sigma, c.angular_accel_sigma, c.fading_memory)
+
+    def update(self, matches: FrameMatches, rng: np.random.Generator) -> UpdateOutcome:
+        model = ReprojectionModel.of_map_points(self.ekf.intrinsics, matches.X_map)
+        x, P, out = robust_update(self.ekf.x, self.ekf.P, matches.z_map, model,
+                                  self.cfg.pixel_sigma_px, rng, self.settings)
+        self.ekf.x, self.ekf.P, self.ekf.last_update = x, P, out.stats
+        return UpdateOutcome(out.inliers, np.zeros(0, bool))
+
+
+class JointEstimator(EkfEstimator):
+    """Camera + in-filter inverse-depth points, one robust update on the joint state."""
+
+    def __init__(self, cfg: VoConfig, ekf: CameraEKF, points: PointFilter) -> None:
+        super().__init__(cfg, ekf)
+        self.points = points
+
+    def predict(self, dt: float) -> None:
+        # the camera-point cross-covariance uses F at the prior state: before the camera
+        self.points.predict(self.ekf.x, dt, self.cfg.fading_memory)
+        super().predict(dt)
+
+    def update(self, matches: FrameMatches, rng: np.random.Generator) -> UpdateOutcome:
+        pts = self.points
+        model = pts.measurements(matches.X_map, matches.point_rows)
+        z = np.concatenate((np.asarray(matches.z_map, float).reshape(-1, 2),
+                            np.asarray(matches.z_points, float).reshape(-1, 2)))
+        x, P = pts.joint(self.ekf)
+        x, P, out = robust_update(x, P, z, model, self.cfg.pixel_sigma_px, rng,
+                                  self.settings)
+        pts.set_joint(self.ekf, x, P)
+        self.ekf.last_update = out.stats
+        a = len(matches.X_map)
+        pts.record_verdicts(matches.point_rows, out.inliers[a:])
+        return UpdateOutcome(out.inliers[:a], out.inliers[a:])
+
+
+class EpnpEstimator(EkfEstimator):
+    """Baseline: the pose is overwritten by per-frame EPnP + LM; velocity by difference."""
+
+    def __init__(self, cfg: VoConfig, ekf: CameraEKF) -> None:
+        super().__init__(cfg, ekf)
+        self._T_world_cam_prev: np.ndarray | None = None
+        self._dt = cfg.default_dt_s
+
+    def predict(self, dt: float) -> None:
+        self._T_world_cam_prev, self._dt = self.ekf.T_world_cam, dt
+        super().predict(dt)
+
+    def update(self, matches: FrameMatches, rng: np.random.Generator) -> UpdateOutcome:
+        c = self.cfg
+        pnp = solve_epnp(matches.z_map, matches.X_map, self.ekf.intrinsics,
+                         c.pixel_sigma_px, c.ransac_inlier_px)
+        if not pnp.ok:
+            return UpdateOutcome(np.zeros(len(matches.z_map), bool), np.zeros(0, bool))
+        if self._T_world_cam_prev is not None:
+            self.ekf.x[VEL] = (pnp.T_world_cam[:3, 3] - self._T_world_cam_prev[:3, 3]) \
+                / self._dt
+        self.ekf.set_pose(pnp.T_world_cam, pnp.pose_cov)
+        return UpdateOutcome(pnp.inliers, np.zeros(0, bool))
+
+
+def make_estimator(cfg: VoConfig, ekf: CameraEKF, points: PointFilter | None
+                   ) -> EkfEstimator:
+    """The estimator the configuration asks for (`estimator`, `map_refinement`)."""
+    if cfg.estimator == 'epnp':
+        return EpnpEstimator(cfg, ekf)
+    if points is not None:
+        return JointEstimator(cfg, ekf, points)
+    return EkfEstimator(cfg, ekf)
