@@ -8,6 +8,7 @@ import pytest
 from ekf_vo.config import VoConfig
 from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.pipeline import TrackingState, VisualOdometry
+from ekf_vo.core.stream import VoStream
 from ekf_vo.tools.evaluate import evaluate
 from ekf_vo.tools.synth import SynthConfig, render_sequence
 
@@ -77,16 +78,43 @@ def test_lost_on_black_frames_then_rebootstraps_in_the_same_odom_frame(sequence)
 
 
 def test_bad_frames_are_skipped_without_losing_the_track(sequence):
+    """The stream (the core's front door) rejects a repeated stamp, a slightly older one
+    and a wrong-size image, counts them, and the track goes on."""
     camera, frames = sequence
-    vo = VisualOdometry(VoConfig(), camera)
+    stream = VoStream(VoConfig())
+    assert stream.set_camera(camera) and not stream.set_camera(camera)
     for stamp, img, _ in frames[:40]:
-        vo.process(img, stamp)
-    assert vo.state == TrackingState.TRACKING
+        assert stream.admit(stamp) is None
+        stream.process(img, stamp)
+    assert stream.state == TrackingState.TRACKING
     stamp = frames[39][0]
-    assert 'not increasing' in vo.process(frames[39][1], stamp).message
-    assert 'does not match' in vo.process(frames[40][1][:100], frames[40][0]).message
-    r = vo.process(frames[40][1], frames[40][0])
-    assert r.ok and vo.state == TrackingState.TRACKING
+    assert stream.admit(stamp).key == 'duplicate_stamp'
+    assert stream.admit(stamp - 1000).key == 'out_of_order'
+    assert stream.admit(frames[40][0]) is None
+    assert stream.process(frames[40][1][:100], frames[40][0]).key == 'size_mismatch'
+    r = stream.process(frames[40][1], frames[40][0])
+    assert r.ok and stream.state == TrackingState.TRACKING
+    assert stream.counters == {'duplicate_stamp': 1, 'out_of_order': 1, 'size_mismatch': 1}
+
+
+def test_time_going_backwards_resets_and_a_new_calibration_restarts(sequence):
+    camera, frames = sequence
+    stream = VoStream(VoConfig())
+    stream.set_camera(camera)
+    for stamp, img, _ in frames[:30]:
+        stream.admit(stamp)
+        stream.process(img, stamp)
+    assert stream.state == TrackingState.TRACKING
+    stamp0, img0 = frames[29][0] - 2_000_000_000, frames[0][1]
+    assert stream.admit(stamp0) is None                 # looped: 2 s behind
+    r = stream.process(img0, stamp0)
+    assert stream.n_resets == 1 and not r.ok and stream.state != TrackingState.TRACKING
+    other = PinholeCamera.from_camera_info(
+        {'width': camera.width, 'height': camera.height,
+         'K': (camera.K * [[1.1], [1.1], [1]]).reshape(-1).tolist(),
+         'D': [0.0] * 5, 'distortion_model': 'plumb_bob'})
+    assert stream.set_camera(other) and stream.n_camera_changes == 1
+    assert stream.n_resets == 1 and stream.state == TrackingState.INITIALISING
 
 
 def test_a_long_gap_resets_instead_of_extrapolating(sequence):

@@ -141,19 +141,14 @@ class VisualOdometry:
     # ------------------------------------------------------------------ main entry
     def process(self, gray: np.ndarray, stamp_ns: int,
                 known_T_world_cam: np.ndarray | None = None) -> FrameResult:
-        """Process one grey image (uint8 HxW) taken at `stamp_ns` (int nanoseconds).
+        """Process one grey image (uint8 HxW, the camera's size) taken at `stamp_ns`
+        (int nanoseconds, increasing): stream.VoStream checks both before calling.
 
         `known_T_world_cam` is only for the papers' ground-truth bootstrap (METHOD.md:
         "the first two ground-truth poses fix the scale"); the pipeline never reads it
         once tracking."""
         t0 = time.perf_counter()
         stamp_ns = int(stamp_ns)
-        if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
-            return FrameResult(stamp_ns, self.state, message='stamp not increasing: skipped')
-        if gray.shape[:2] != (self.camera.height, self.camera.width):
-            return FrameResult(stamp_ns, self.state, message=(
-                f'image {gray.shape[1]}x{gray.shape[0]} does not match the camera '
-                f'{self.camera.width}x{self.camera.height}: skipped'))
         if self._last_stamp_ns is not None and self.state == TrackingState.TRACKING and \
                 (stamp_ns - self._last_stamp_ns) * 1e-9 > self.cfg.max_dt_s:
             self.reset(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s')

@@ -1,0 +1,150 @@
+"""The front door of the core: camera calibrations and frames in, one estimate per frame out.
+
+`VoStream` is what every user of the estimator talks to — `vo_node`, `ekf-vo-run`, the
+demo and the benchmarks — so the rules about inputs are written once:
+- camera: the first valid calibration starts the estimator; a different one (intrinsics,
+  distortion or size; camera.PinholeCamera.same_as) restarts it on the next frame;
+- stamps, in arrival order (`admit`): a duplicate, a slightly older stamp (out of order)
+  or a jump of more than FUTURE_JUMP_S ahead is rejected; a stamp far behind the last one
+  (TIME_RESET_S: a looping bag, a simulator reset) resets the estimator;
+- frames: an image whose size is not the calibration's is rejected; a reset requested
+  from outside happens before the next frame.
+Rejections come back as `Rejection(key, text)` and are counted in `counters[key]`, so a
+node can throttle its log per kind and publish the counts. Speaks numpy arrays, integer
+nanosecond stamps and plain mappings; no ROS types.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..config import VoConfig
+from .camera import PinholeCamera
+from .pipeline import FrameResult, TrackingState, VisualOdometry
+
+logger = logging.getLogger(__name__)
+
+#: a stamp this far behind the last one means time restarted (looping bag, sim reset) [s]
+TIME_RESET_S = 1.0
+#: stamps further than this ahead of the last one are treated as corrupt [s]
+FUTURE_JUMP_S = 3600.0
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """Why an input was not used: `key` names the kind (a counter), `text` says it."""
+
+    key: str
+    text: str
+
+
+class VoStream:
+    """One camera's stream of calibrations and frames into the estimator.
+
+    Attributes: camera (the current PinholeCamera or None), vo (the VisualOdometry, None
+    until a calibration arrived), counters (collections.Counter of rejections and
+    events), n_camera_changes, n_resets (over every estimator this stream ran)."""
+
+    def __init__(self, cfg: VoConfig, seed: int = 0) -> None:
+        self.cfg = cfg.validate()
+        self.seed = int(seed)
+        self.camera: PinholeCamera | None = None
+        self.vo: VisualOdometry | None = None
+        self.counters: collections.Counter = collections.Counter()
+        self.n_camera_changes = 0
+        self._resets_before = 0          # resets of estimators this stream replaced
+        self._last_stamp_ns: int | None = None
+        self._pending_reset: str | None = None
+
+    # ------------------------------------------------------------------ inputs
+    def set_camera(self, info: Mapping[str, Any] | PinholeCamera) -> bool:
+        """A calibration: a PinholeCamera or the mapping PinholeCamera.from_camera_info
+        reads. Returns True when it is new or changed (the estimator restarts); raises
+        CameraModelError or ValueError when unusable (the current camera stays)."""
+        camera = info if isinstance(info, PinholeCamera) else \
+            PinholeCamera.from_camera_info(info)
+        if camera.same_as(self.camera):
+            return False
+        if self.camera is not None:
+            self.n_camera_changes += 1
+            logger.info('calibration changed: restarting the estimator')
+        self.camera = camera
+        self._replace_estimator(VisualOdometry(self.cfg, camera, seed=self.seed))
+        return True
+
+    def set_config(self, cfg: VoConfig) -> None:
+        """New estimator parameters: the estimator restarts with them."""
+        self.cfg = cfg.validate()
+        if self.camera is not None:
+            self._replace_estimator(VisualOdometry(self.cfg, self.camera, seed=self.seed))
+
+    def admit(self, stamp_ns: int) -> Rejection | None:
+        """Check a frame's stamp in ARRIVAL order (before any queue may drop frames).
+        None = accepted (a backwards jump also schedules a reset)."""
+        stamp_ns = int(stamp_ns)
+        last = self._last_stamp_ns
+        if last is not None:
+            if stamp_ns == last:
+                return self._reject('duplicate_stamp', 'duplicate image stamp: dropped')
+            if stamp_ns < last:
+                if (last - stamp_ns) * 1e-9 <= TIME_RESET_S:
+                    return self._reject('out_of_order', 'out-of-order image stamp: dropped')
+                self.counters['time_resets'] += 1
+                self.request_reset('time went backwards (looping bag or sim reset)')
+            elif (stamp_ns - last) * 1e-9 > FUTURE_JUMP_S:
+                return self._reject('future_stamp',
+                                    'image stamp jumps more than 1 h ahead: dropped')
+        self._last_stamp_ns = stamp_ns
+        return None
+
+    def request_reset(self, reason: str) -> None:
+        """Drop the map and re-bootstrap before the next frame."""
+        self._pending_reset = reason
+
+    def process(self, gray: np.ndarray, stamp_ns: int,
+                known_T_world_cam: np.ndarray | None = None
+                ) -> FrameResult | Rejection:
+        """Run one admitted frame (grey uint8 HxW) through the estimator.
+
+        `known_T_world_cam`: only for the papers' ground-truth bootstrap (benchmarks)."""
+        if self.vo is None:
+            return self._reject('no_camera_info', 'image before any valid CameraInfo: '
+                                'skipped')
+        camera = self.camera
+        if gray.shape[:2] != (camera.height, camera.width):
+            return self._reject('size_mismatch', (
+                f'image {gray.shape[1]}x{gray.shape[0]} does not match the CameraInfo '
+                f'{camera.width}x{camera.height}: dropped'))
+        if self._pending_reset is not None:
+            self.vo.reset(self._pending_reset)
+            self._pending_reset = None
+        return self.vo.process(gray, int(stamp_ns), known_T_world_cam)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def state(self) -> TrackingState:
+        return self.vo.state if self.vo is not None else TrackingState.INITIALISING
+
+    @property
+    def n_resets(self) -> int:
+        return self._resets_before + (self.vo.n_resets if self.vo is not None else 0)
+
+    def restart(self) -> None:
+        """Throw the estimator away (after an internal error); the next frame starts a
+        fresh one with the current camera and parameters."""
+        if self.camera is not None:
+            self._replace_estimator(VisualOdometry(self.cfg, self.camera, seed=self.seed))
+
+    def _replace_estimator(self, vo: VisualOdometry) -> None:
+        if self.vo is not None:
+            self._resets_before += self.vo.n_resets
+        self.vo = vo
+        self._pending_reset = None
+
+    def _reject(self, key: str, text: str) -> Rejection:
+        self.counters[key] += 1
+        return Rejection(key, text)
