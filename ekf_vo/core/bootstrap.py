@@ -281,32 +281,10 @@ class TwoViewBootstrap:
 
         # (b) Essential matrix (Nister five-point + RANSAC) and relative pose.
         thr = float(cfg.bootstrap_ransac_px)
-        E, mask_e = cv2.findEssentialMat(p_ref, p_cur, self.K, method=cv2.RANSAC,
-                                         prob=_RANSAC_PROB, threshold=thr)
-        if E is None or mask_e is None or E.shape[0] < 3:
-            return self._refuse('no essential matrix found', n_common=n_common,
-                                median_flow_px=flow)
-        E = E[:3]   # several stacked solutions may come back; RANSAC keeps the best first
-        mask_e = mask_e.reshape(-1).astype(bool)
-        n_e = int(mask_e.sum())
-        if n_e < 2 * _MIN_POINTS_ESSENTIAL:
-            # The count that matters (valid triangulated points) is checked after the
-            # polish, whose gate is wider than the RANSAC threshold.
-            return self._refuse(f'too few essential-matrix inliers ({n_e})',
-                                n_common=n_common, median_flow_px=flow)
-        # recoverPose: the decomposition (of four) with most points in front of both
-        # cameras; it returns x_cur = R x_ref + t with |t| = 1.
-        _, R, t, mask_p = cv2.recoverPose(E, p_ref, p_cur, self.K,
-                                          mask=(mask_e.astype(np.uint8) * 255))
-        t = t.reshape(3)
-        t = t / np.linalg.norm(t)
-        # Least-squares polish on all correspondences near the model (RANSAC's model
-        # comes from five points only); the refined model then re-selects the inliers
-        # with a gate of _GATE_SCALE thresholds, the triangulation checks decide the rest.
-        gate = _GATE_SCALE * thr
-        R, t = refine_relative_pose(R, t, p_ref, p_cur, self.K, gate_px=gate,
-                                    huber_px=_HUBER_SCALE * thr)
-        inl = np.abs(sampson_px(R, t, p_ref, p_cur, self.K)) < gate
+        pose = self._relative_pose(p_ref, p_cur, thr)
+        if isinstance(pose, str):
+            return self._refuse(pose, n_common=n_common, median_flow_px=flow)
+        R, t, inl, n_e = pose
 
         # (c) Triangulate the inliers (unit baseline; the scale is applied at the end,
         # all checks are scale-invariant).
@@ -347,6 +325,35 @@ class TwoViewBootstrap:
             ok=True, reason='ok', R_cur_ref=R, t_cur_ref=t_s, T_cur_ref=_se3(R, t_s),
             point_ids=ids[valid], X_ref=X_ref, X_world=X_ref.copy(), inlier_ids=ids[inl],
             **common)
+
+    def _relative_pose(self, p_ref: np.ndarray, p_cur: np.ndarray, thr: float):
+        """Step (b) of try_pair: (R, t (unit), inlier mask, essential inliers) of the pair,
+        or the reason for refusing it (str)."""
+        E, mask_e = cv2.findEssentialMat(p_ref, p_cur, self.K, method=cv2.RANSAC,
+                                         prob=_RANSAC_PROB, threshold=thr)
+        if E is None or mask_e is None or E.shape[0] < 3:
+            return 'no essential matrix found'
+        E = E[:3]   # several stacked solutions may come back; RANSAC keeps the best first
+        mask_e = mask_e.reshape(-1).astype(bool)
+        n_e = int(mask_e.sum())
+        if n_e < 2 * _MIN_POINTS_ESSENTIAL:
+            # The count that matters (valid triangulated points) is checked after the
+            # polish, whose gate is wider than the RANSAC threshold.
+            return f'too few essential-matrix inliers ({n_e})'
+        # recoverPose: the decomposition (of four) with most points in front of both
+        # cameras; it returns x_cur = R x_ref + t with |t| = 1.
+        _, R, t, _ = cv2.recoverPose(E, p_ref, p_cur, self.K,
+                                     mask=(mask_e.astype(np.uint8) * 255))
+        t = t.reshape(3)
+        t = t / np.linalg.norm(t)
+        # Least-squares polish on all correspondences near the model (RANSAC's model
+        # comes from five points only); the refined model then re-selects the inliers
+        # with a gate of _GATE_SCALE thresholds, the triangulation checks decide the rest.
+        gate = _GATE_SCALE * thr
+        R, t = refine_relative_pose(R, t, p_ref, p_cur, self.K, gate_px=gate,
+                                    huber_px=_HUBER_SCALE * thr)
+        inl = np.abs(sampson_px(R, t, p_ref, p_cur, self.K)) < gate
+        return R, t, inl, n_e
 
     def from_known_poses(self, T_ref_world: np.ndarray, T_cur_world: np.ndarray,
                          ids_ref: np.ndarray, px_ref: np.ndarray, ids_cur: np.ndarray,

@@ -386,16 +386,7 @@ class FeatureTracker:
             # More needed than the deficit (quota rounding): trim the fullest cells.
             take = self._trim(take, existing, -left)
         elif left > 0:
-            spare = avail - take
-            while left > 0 and spare.sum() > 0:
-                # Round-robin over cells with spare corners, fewest tracks first.
-                order = np.argsort(existing + take, kind='stable')
-                for k in order[spare[order] > 0]:
-                    if left == 0:
-                        break
-                    take[k] += 1
-                    spare[k] -= 1
-                    left -= 1
+            take = self._share_spare(take, avail, existing, left)
         new_px = [f[:t] for f, t in zip(found, take) if t > 0]
         if not new_px:
             return 0
@@ -410,6 +401,23 @@ class FeatureTracker:
         self._px = np.ascontiguousarray(np.concatenate([self._px, new]), np.float32)
         self._age = np.concatenate([self._age, np.zeros(n_new, np.int32)])
         return n_new
+
+    @staticmethod
+    def _share_spare(take: np.ndarray, avail: np.ndarray, existing: np.ndarray,
+                     left: int) -> np.ndarray:
+        """Give the deficit `left` by textureless cells to cells with spare corners:
+        round-robin, fewest tracks first."""
+        take = take.copy()
+        spare = avail - take
+        while left > 0 and spare.sum() > 0:
+            order = np.argsort(existing + take, kind='stable')
+            for k in order[spare[order] > 0]:
+                if left == 0:
+                    break
+                take[k] += 1
+                spare[k] -= 1
+                left -= 1
+        return take
 
     def _detect_cells(self, gray: np.ndarray, mask: np.ndarray, ys: np.ndarray,
                       xs: np.ndarray, want: np.ndarray, found: list[np.ndarray]) -> None:

@@ -79,6 +79,26 @@ class BundleResult:
         return float(np.sqrt(np.mean(self.err_after_px ** 2)))
 
 
+def _jacobian_sparsity(k: int, n_cam: int, n_params: int, cam_idx: np.ndarray,
+                       pt_idx: np.ndarray):
+    """Which parameters each residual depends on: observation j, its camera's block (not
+    camera 0, the gauge; camera 1 has 5 parameters, the others 6) and its point's 3."""
+    from scipy.sparse import lil_matrix                 # lazy: see bundle_adjust
+    o = len(cam_idx)
+    A = lil_matrix((2 * o, n_params), dtype=np.int8)
+    rows = np.arange(o)
+    for c in range(1, k):
+        sel = rows[cam_idx == c]
+        cols = range(0, 5) if c == 1 else range(5 + 6 * (c - 2), 11 + 6 * (c - 2))
+        for col in cols:
+            A[2 * sel, col] = 1
+            A[2 * sel + 1, col] = 1
+    for d in range(3):
+        A[2 * rows, n_cam + 3 * pt_idx + d] = 1
+        A[2 * rows + 1, n_cam + 3 * pt_idx + d] = 1
+    return A
+
+
 def bundle_adjust(T_world_cam: np.ndarray, X_world: np.ndarray, cam_idx: np.ndarray,
                   pt_idx: np.ndarray, px: np.ndarray, K: np.ndarray,
                   huber_px: float, max_evaluations: int) -> BundleResult:
@@ -99,7 +119,6 @@ def bundle_adjust(T_world_cam: np.ndarray, X_world: np.ndarray, cam_idx: np.ndar
     in the per-frame path, and scipy is already a package dependency (package.xml).
     """
     from scipy.optimize import least_squares           # lazy: see the docstring
-    from scipy.sparse import lil_matrix
 
     T_world_cam = np.asarray(T_world_cam, float)
     k, m, o = len(T_world_cam), len(X_world), len(px)
@@ -145,18 +164,7 @@ def bundle_adjust(T_world_cam: np.ndarray, X_world: np.ndarray, cam_idx: np.ndar
 
     p0 = np.concatenate((np.zeros(5), np.column_stack((np.zeros((k - 2, 3)), C_init[2:])
                                       ).ravel(), np.asarray(X_world, float).ravel()))
-    # sparsity: observation j depends on its camera's block (not camera 0) and its point
-    A = lil_matrix((2 * o, len(p0)), dtype=np.int8)
-    rows = np.arange(o)
-    for c in range(1, k):
-        sel = rows[cam_idx == c]
-        cols = range(0, 5) if c == 1 else range(5 + 6 * (c - 2), 11 + 6 * (c - 2))
-        for col in cols:
-            A[2 * sel, col] = 1
-            A[2 * sel + 1, col] = 1
-    for d in range(3):
-        A[2 * rows, n_cam + 3 * pt_idx + d] = 1
-        A[2 * rows + 1, n_cam + 3 * pt_idx + d] = 1
+    A = _jacobian_sparsity(k, n_cam, len(p0), cam_idx, pt_idx)
     err0 = np.linalg.norm((project(p0) - px), axis=1)
     sol = least_squares(residuals, p0, jac_sparsity=A, method='trf', loss='huber',
                         f_scale=huber_px, x_scale='jac', max_nfev=max_evaluations,
