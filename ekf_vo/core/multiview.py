@@ -121,7 +121,7 @@ def bundle_adjust(T_world_cam: np.ndarray, X_world: np.ndarray, cam_idx: np.ndar
     from scipy.optimize import least_squares           # lazy: see the docstring
 
     T_world_cam = np.asarray(T_world_cam, float)
-    k, m, o = len(T_world_cam), len(X_world), len(px)
+    k, m = len(T_world_cam), len(X_world)
     if k < 2:
         raise ValueError('bundle adjustment needs at least two cameras')
     R_cw0 = np.transpose(T_world_cam[:, :3, :3], (0, 2, 1))

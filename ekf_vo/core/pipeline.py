@@ -451,7 +451,7 @@ class VisualOdometry:
         for tid in [t for t in self._cand_frame if t not in alive]:
             self._drop_candidate(tid)
         self._banned &= alive          # ids are never reused: forget ended tracks
-        new_rows, cand_rows = [], []
+        cand_rows = []
         for k in np.flatnonzero(~has_point):
             tid = int(tracks.ids[k])
             if tid in self._banned:
