@@ -14,6 +14,8 @@ setup(
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.py')),
+        # the demo bag, found by ekf-vo-demo through the ament index (tools/demo.py)
+        ('share/' + PACKAGE + '/bags/demo', glob('bags/demo/*')),
     ],
     # Runtime dependencies are pinned in requirements.txt (venv installs) and declared in
     # package.xml (rosdep on a ROS install); nothing here so colcon never pip-installs.
@@ -30,7 +32,7 @@ setup(
             'ekf_vo_nodes = ekf_vo.ros.run_all:main',
             'ekf-vo-synth = ekf_vo.tools.synth:main',
             'ekf-vo-convert = ekf_vo.tools.convert:main',
-            'ekf-vo-play = ekf_vo.tools.play:main',
+            'ekf-vo-play = ekf_vo.ros.player:main',
             'ekf-vo-run = ekf_vo.tools.run:main',
             'ekf-vo-eval = ekf_vo.tools.evaluate:main',
             'ekf-vo-demo = ekf_vo.tools.demo:main',

@@ -1,13 +1,13 @@
-"""The EKFPnP paper's synthetic experiment (METHOD.md sec. 1): the Stanford bunny, 55 poses.
+"""The EKFPnP paper's synthetic experiment (docs/method.md §1): the Stanford bunny, 55 poses.
 
-Protocol, as METHOD.md states it:
+Protocol, as docs/method.md §9.4 states it:
 - the 453 vertices of bun_zipper_res4.ply, centred and scaled to span ~1 unit (call it m);
 - a virtual camera 640x480, f = 800 px, principal point at the image centre;
 - 55 poses on a path where all six DoF change between consecutive poses and the distance to
   the object first shrinks (4.5 -> 2.4 m) then grows back; every point is checked to
   project inside the image in every frame;
 - the EKF starts from the ground truth of frames 0 and 1 (pose of frame 1, velocities from
-  the difference) and tracks frames 2..54 with the exact map (bench.synthetic.run_ekf);
+  the difference) and tracks frames 2..54 with the exact map (synth_points.run_ekf);
   EPnP (+ LM refinement, the paper's EPnP+GN) solves every frame from scratch;
 - Gaussian pixel noise sigma = 3 px, 10 runs averaged; errors per pose:
   translation = |c_est - c_gt| / (total path length) [%] with c the camera centre,
@@ -19,7 +19,6 @@ Protocol, as METHOD.md states it:
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -28,8 +27,8 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from ekf_vo.core.pnp import solve_epnp
-from .common import shared_data, write_json
-from .synthetic import Sequence, look_at, pose_error, project, run_ekf
+from ekf_vo.tools.synth_points import Sequence, look_at, pose_error, project, run_ekf
+from .common import pyplot, section_main, shared_data
 
 N_POSES = 55
 WIDTH, HEIGHT, FOCAL_PX = 640, 480, 800.0
@@ -41,7 +40,7 @@ SIGMA_PX = 3.0
 SWEEP_SIGMAS = (0.0, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0)
 #: the filter needs a positive R; with noise-free data it uses this floor
 MIN_FILTER_SIGMA_PX = 0.1
-#: the paper's finding, qualitative (METHOD.md sec. 1)
+#: the paper's finding, qualitative (docs/method.md §1)
 PAPER = {'epnp_above_ekf_everywhere': True, 'epnp_worst_at_ends': True,
          'ekf_translation_peak_mid_sequence': True, 'epnp_zero_at_zero_noise': True}
 
@@ -269,10 +268,7 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
 
 
 def plot(res: dict, out: Path) -> list[str]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    out.mkdir(parents=True, exist_ok=True)
+    plt = pyplot(out)
     f = np.asarray(res['frames'])
     pp = res['per_pose']
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
@@ -314,14 +310,8 @@ def plot(res: dict, out: Path) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--quick', action='store_true')
-    parser.add_argument('--out', type=Path, default=Path('bench/results'))
-    args = parser.parse_args(argv)
-    res = run(args.quick, args.out)
-    write_json(args.out / 'bunny.json', res)
-    print({k: res[k] for k in ('mean', 'ratio_ekf_over_epnp', 'nees', 'checks')})
-    return 0
+    return section_main(argv, __doc__, run, 'bunny', lambda res: print(
+        {k: res[k] for k in ('mean', 'ratio_ekf_over_epnp', 'nees', 'checks')}))
 
 
 if __name__ == '__main__':

@@ -41,6 +41,15 @@ def write_json(path: Path, data: Any) -> None:
     path.write_text(json.dumps(to_jsonable(data), indent=1))
 
 
+def pyplot(out: Path):
+    """matplotlib.pyplot on the file-only Agg backend; creates `out` for the plots."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    out.mkdir(parents=True, exist_ok=True)
+    return plt
+
+
 def section_main(argv: list[str] | None, doc: str, run, name: str, summarize=print) -> int:
     """The CLI of one benchmark section: `--quick`, `--out`; writes `<name>.json`."""
     import argparse

@@ -1,10 +1,10 @@
-"""NEES of the camera EKF's pose covariance on smooth synthetic orbits (METHOD.md sec. 4).
+"""NEES of the camera EKF's pose covariance on smooth synthetic orbits (docs/method.md §11.2).
 
 The product publishes the EKF covariance, so it must be consistent: the normalised
 estimation error squared e^T P^-1 e of the 6-dof pose (position, world rotation vector)
 averages 6 when the covariance is honest. Protocol: 300 points in a 4 m cube, a camera
-on `synthetic.smooth_orbit` (6 m radius, all six DoF varying, 30 Hz, 200 frames), 1 px
-pixel noise, exact map, ground-truth start (bench.synthetic.run_ekf); the bunny section
+on `synth_points.smooth_orbit` (6 m radius, all six DoF varying, 30 Hz, 200 frames), 1 px
+pixel noise, exact map, ground-truth start (synth_points.run_ekf); the bunny section
 adds the same figure on the paper's bunny path.
 
     python -m bench.consistency [--quick]
@@ -16,8 +16,8 @@ import sys
 
 import numpy as np
 
+from ekf_vo.tools.synth_points import Sequence, run_ekf, smooth_orbit
 from .bunny import anees_bounds
-from .synthetic import Sequence, run_ekf, smooth_orbit
 
 SIGMA_PX = 1.0
 RATE_HZ = 30.0

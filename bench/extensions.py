@@ -1,7 +1,7 @@
 """Issue 7: in-filter map refinement and multi-view bootstrap vs the hybrid default.
 
 Four variants of the full pipeline (images in, no ground truth inside the estimator):
-    default     bootstrap two_view,   map_refinement none     (METHOD.md sec. 1)
+    default     bootstrap two_view,   map_refinement none     (docs/method.md §1)
     filter      bootstrap two_view,   map_refinement filter   (point_filter.py, sec. 3)
     multi_view  bootstrap multi_view, map_refinement none     (multiview.py, sec. 3)
     both        bootstrap multi_view, map_refinement filter
@@ -29,7 +29,7 @@ import numpy as np
 
 from ekf_vo.config import VoConfig
 from ekf_vo.core.camera import PinholeCamera
-from ekf_vo.core.pipeline import VisualOdometry
+from ekf_vo.core.stream import VoStream
 from ekf_vo.tools.evaluate import evaluate
 from .common import machine, shared_data, write_json
 from .precise_points import precise_fraction
@@ -49,13 +49,15 @@ def run_frames(frames: list, camera: PinholeCamera, cfg: VoConfig, gt_s: np.ndar
 
     known_T: per-frame GT poses handed to the pipeline while it initialises (the paper's
     GT bootstrap), or None for the monocular bootstrap."""
-    vo = VisualOdometry(cfg, camera, seed=seed)
+    stream = VoStream(cfg, seed=seed)
+    stream.set_camera(camera)
+    vo = stream.vo      # the estimator behind the front door, for its internals
     stamps, poses, precise = [], [], []
     t0 = time.perf_counter()
     for k, (stamp, gray) in enumerate(frames):
         known = known_T[k] if known_T is not None and vo.state.value == 'initialising' \
             else None
-        res = vo.process(gray, stamp, known_T_world_cam=known)
+        res = stream.process(gray, stamp, known_T_world_cam=known)
         if res.ok:
             stamps.append(stamp * 1e-9)
             poses.append(res.T_world_cam)
@@ -87,7 +89,7 @@ def _synthetic(trajectory: str, n_frames: int, seed: int):
 
 
 def _real(name: str):
-    from ekf_vo.tools.dataset import load_folder
+    from ekf_vo.io.dataset import load_folder
     from .real_data import GT_BOOTSTRAP
     folder = shared_data(name)
     if folder is None:

@@ -1,4 +1,4 @@
-"""Fading-memory factor S under model error: the turntable experiment (METHOD.md sec. 2).
+"""Fading-memory factor S under model error: the turntable experiment (docs/method.md §3.4).
 
 Qi et al. 2016 tuned S on a two-axis turntable (360x240, 25 fps): (a) yaw 10 deg to tune S,
 (b) yaw and pitch 20 deg each, (c) yaw 70 deg. Our synthetic stand-in:
@@ -22,7 +22,6 @@ Qi et al. 2016 tuned S on a two-axis turntable (360x240, 25 fps): (a) yaw 10 deg
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -35,7 +34,7 @@ from ekf_vo.core import geometry as geo
 from ekf_vo.core.ekf import CameraEKF
 from ekf_vo.core.observation import ReprojectionModel
 from ekf_vo.core.robust_update import RansacSettings, robust_update
-from .common import write_json
+from .common import pyplot, section_main
 
 WIDTH, HEIGHT, F_TRUE = 360, 240, 300.0
 RATE_HZ = 25.0
@@ -226,10 +225,7 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
 
 
 def plot(res: dict, out: Path, variants: tuple) -> list[str]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    out.mkdir(parents=True, exist_ok=True)
+    plt = pyplot(out)
     names = []
     for variant in variants:
         v = res[variant]
@@ -270,17 +266,14 @@ def plot(res: dict, out: Path, variants: tuple) -> list[str]:
     return names
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--quick', action='store_true')
-    parser.add_argument('--out', type=Path, default=Path('bench/results'))
-    args = parser.parse_args(argv)
-    res = run(args.quick, args.out)
-    write_json(args.out / 'fading_memory.json', res)
+def _summarize(res: dict) -> None:
     for variant in ('focal', 'k1'):
         if variant in res:
             print(variant, res[variant]['summary'])
-    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return section_main(argv, __doc__, run, 'fading_memory', _summarize)
 
 
 if __name__ == '__main__':

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ekf_vo.ros.harness import Feeder, Harness, NodeProcess, domain_id_for
+from ekf_vo.tools.demo import load_demo_frames
 from .common import machine
-from ekf_vo.ros.harness import Feeder, Harness, NodeProcess
-from .speed import load_demo_frames
 
-DOMAIN = 151
+DOMAIN = domain_id_for(__name__)
 
 
 def measure(frames: int = 300, rate_hz: float = 30.0) -> dict:
@@ -33,7 +33,7 @@ def measure(frames: int = 300, rate_hz: float = 30.0) -> dict:
         vo.wait_for_output('vo_node ready')
         h = Harness(DOMAIN, 'latency_bench')
         try:
-            from ekf_vo.ros import conversions as conv
+            from ekf_vo import bridge as conv
             feed = Feeder(h, info, reliable=False)
             feed.wait_connected()
             stamps = feed.publish(frames_used, lambda k, s, g: conv.numpy_to_image(

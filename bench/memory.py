@@ -24,8 +24,8 @@ from scipy.spatial.transform import Rotation
 
 from ekf_vo.config import VoConfig
 from ekf_vo.core.camera import PinholeCamera
-from ekf_vo.core.pipeline import VisualOdometry
-from .common import section_main
+from ekf_vo.core.stream import VoStream
+from .common import pyplot, section_main
 
 LOOP_FRAMES = 300
 RATE_HZ = 30.0
@@ -75,7 +75,9 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
     camera, loop = render_loop()
     render_s = time.perf_counter() - t0
     cfg = VoConfig()
-    vo = VisualOdometry(cfg, camera, seed=0)
+    stream = VoStream(cfg, seed=0)
+    stream.set_camera(camera)
+    vo = stream.vo      # the estimator behind the front door, for its internals
     start_ns = 1_700_000_000 * 10 ** 9
     samples = {'frame': [], 'rss_mb': [], 'peak_rss_mb': [], 'map_size': [], 'fps': [],
                'n_resets': [], 'frames_ok': []}
@@ -84,7 +86,7 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
     crashes = []
     for i in range(n_frames):
         try:
-            res = vo.process(loop[i % LOOP_FRAMES], start_ns + round(i * 1e9 / RATE_HZ))
+            res = stream.process(loop[i % LOOP_FRAMES], start_ns + round(i * 1e9 / RATE_HZ))
             ok += int(res.ok)
         except OverflowError as exc:
             # core/ransac.py: a 1-point RANSAC round where the best hypothesis has zero
@@ -126,10 +128,7 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
 
 
 def plot(res: dict, out: Path) -> list[str]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    out.mkdir(parents=True, exist_ok=True)
+    plt = pyplot(out)
     s = res['samples']
     fig, ax = plt.subplots(1, 3, figsize=(15, 4))
     ax[0].plot(s['frame'], s['rss_mb'], 'b-', label='RSS')

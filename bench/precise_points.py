@@ -1,4 +1,4 @@
-"""Fraction of "precisely reconstructed" map points per image (METHOD.md sec. 3 metric).
+"""Fraction of "precisely reconstructed" map points per image (docs/method.md §8 metric).
 
 Li et al. 2016 call a point precise when its reprojection error is below 1 px, and report
 per image the fraction of such points: in 80 % of their flight-test images more than 89 %
@@ -25,7 +25,8 @@ import numpy as np
 from ekf_vo.config import VoConfig
 from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.pipeline import FrameResult, VisualOdometry
-from .common import section_main, shared_data
+from ekf_vo.core.stream import VoStream
+from .common import pyplot, section_main, shared_data
 
 THRESHOLD_PX = 1.0
 PAPER = {'pct_images': 80.0, 'pct_points_precise': 89.0}
@@ -47,11 +48,13 @@ def precise_fraction(vo: VisualOdometry, res: FrameResult) -> tuple[float, int, 
 
 def run_pipeline(frames, camera: PinholeCamera, cfg: VoConfig) -> dict:
     """Run VisualOdometry over (stamp_ns, gray) frames; per-frame precise fractions."""
-    vo = VisualOdometry(cfg, camera, seed=0)
+    stream = VoStream(cfg, seed=0)
+    stream.set_camera(camera)
+    vo = stream.vo      # the estimator behind the front door, for its internals
     frac, n_pts, errs = [], [], []
     n_frames = 0
     for stamp, gray in frames:
-        res = vo.process(gray, stamp)
+        res = stream.process(gray, stamp)
         n_frames += 1
         f, n, e = precise_fraction(vo, res)
         if n:
@@ -97,7 +100,7 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
     res['synthetic_room']['what'] = f'rendered room, walk trajectory, {n} frames 640x480'
     folder = shared_data('kitti06_f0-50')
     if folder is not None:
-        from ekf_vo.tools.dataset import load_folder
+        from ekf_vo.io.dataset import load_folder
         from .real_data import PRESETS
         data = load_folder(folder)
         cfg = dataclasses.replace(VoConfig(), **PRESETS['kitti06_f0-50']).validate()
@@ -112,10 +115,7 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
 
 
 def plot(res: dict, out: Path) -> list[str]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    out.mkdir(parents=True, exist_ok=True)
+    plt = pyplot(out)
     seqs = [(k, res[k]) for k in ('synthetic_room', 'kitti06')
             if 'fraction_per_image' in res[k]]
     fig, ax = plt.subplots(1, 2, figsize=(12, 4))

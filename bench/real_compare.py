@@ -1,4 +1,4 @@
-"""Real sequences: EKF vs iterated EKF vs per-frame EPnP (METHOD.md sec. 1, "Real").
+"""Real sequences: EKF vs iterated EKF vs per-frame EPnP (docs/method.md §9.4, "Real").
 
 Wraps `real_data.compare` (the core offline, images in) on KITTI 06 frames 0-50
 (monocular bootstrap from the images, ATE after Sim(3) alignment) and Middlebury dino
@@ -12,9 +12,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from .common import section_main, shared_data
+from .common import pyplot, section_main, shared_data
 from .real_data import compare
 
 SEQUENCES = ('kitti06_f0-50', 'middlebury_dino')
@@ -35,13 +33,10 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
 
 
 def plot(res: dict, out: Path) -> list[str]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = pyplot(out)
     seqs = [s for s in SEQUENCES if 'skipped' not in res[s]]
     if not seqs:
         return []
-    out.mkdir(parents=True, exist_ok=True)
     metrics = (('ate_pct_path', 'ATE (Sim3) [% of path]'),
                ('rpe_rot_rmse_deg', 'RPE rotation RMSE [deg]'),
                ('rot_drift_mean_deg', 'rotation drift, mean [deg]'))

@@ -4,7 +4,9 @@ KITTI 06 frames 0-50: monocular bootstrap from the images (scale arbitrary), ATE
 Sim(3) alignment. Middlebury dino: the paper's protocol, two-view bootstrap from the
 ground truth of the first two views (fixes the scale), then EKF vs EPnP.
 
-    python -m bench.real_data kitti06_f0-50 [--estimator ekf|iekf|epnp]
+    python -m bench.real_data kitti06_f0-50 [--runs 8] [--estimators ekf iekf epnp]
+    python -m bench.real_data kitti06_f0-50 --single [--seed 0]     (one run, the preset)
+(either also writes its result to --json PATH)
 """
 from __future__ import annotations
 
@@ -12,15 +14,16 @@ import argparse
 import dataclasses
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from ekf_vo.config import VoConfig
 from ekf_vo.core.camera import PinholeCamera
-from ekf_vo.core.pipeline import VisualOdometry
-from ekf_vo.tools.dataset import load_folder
+from ekf_vo.core.stream import VoStream
+from ekf_vo.io.dataset import load_folder
 from ekf_vo.tools.evaluate import evaluate
-from .common import shared_data
+from .common import shared_data, write_json
 
 #: settings per sequence (documented deviations from the defaults, and why)
 PRESETS = {
@@ -48,13 +51,15 @@ def run_sequence(name: str, overrides: dict | None = None, gt_bootstrap: bool | 
     values.update(overrides or {})
     cfg = dataclasses.replace(VoConfig(), **values).validate()
     camera = PinholeCamera.from_camera_info(data.camera)
-    vo = VisualOdometry(cfg, camera, seed=seed)
+    stream = VoStream(cfg, seed=seed)
+    stream.set_camera(camera)
+    vo = stream.vo      # the estimator behind the front door, for its internals
     use_gt = GT_BOOTSTRAP.get(name, False) if gt_bootstrap is None else gt_bootstrap
     stamps, poses, results = [], [], []
     t0 = time.perf_counter()
     for k, (stamp_ns, gray) in enumerate(data.frames(limit)):
         known = data.gt_at(k) if (use_gt and vo.state.value == 'initialising') else None
-        res = vo.process(gray, stamp_ns, known_T_world_cam=known)
+        res = stream.process(gray, stamp_ns, known_T_world_cam=known)
         results.append(res)
         if res.ok:
             stamps.append(stamp_ns * 1e-9)
@@ -99,14 +104,33 @@ def compare(name: str, estimators: tuple = ('ekf', 'iekf', 'epnp'), runs: int = 
     return out
 
 
+def single(name: str, seed: int, json_path: Path | None) -> int:
+    """One run_sequence: print it, and write it (without the evaluation object)."""
+    r = run_sequence(name, seed=seed)
+    print(f"{name} ({r['estimator']}, seed {seed}): tracked {r['pct_tracked']:.1f} %, "
+          f"ATE {r['ate_sim3_rmse']:.3f} m = {r['ate_pct_path']:.2f} % of "
+          f"{r['path_length']:.1f} m, {r['n_resets']} resets, {r['fps']:.1f} fps")
+    if json_path:
+        write_json(json_path, {k: v for k, v in r.items() if k != 'eval'})
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('sequence', choices=sorted(PRESETS))
     parser.add_argument('--runs', type=int, default=8, help='seeds per estimator')
     parser.add_argument('--estimators', nargs='+', default=['ekf', 'iekf', 'epnp'],
                         choices=('ekf', 'iekf', 'epnp'))
+    parser.add_argument('--single', action='store_true',
+                        help="one run with the sequence's preset estimator, no comparison")
+    parser.add_argument('--seed', type=int, default=0, help='the seed of --single')
+    parser.add_argument('--json', type=Path, help='also write the result to this file')
     args = parser.parse_args(argv)
+    if args.single:
+        return single(args.sequence, args.seed, args.json)
     res = compare(args.sequence, tuple(args.estimators), args.runs)
+    if args.json:
+        write_json(args.json, res)
     print(f'{args.sequence}: {args.runs} runs per estimator (mean +- std); '
           f'ATE after Sim(3) alignment')
     print(f'{"estimator":<9} {"tracked %":>10} {"ATE m":>16} {"ATE % path":>16} '

@@ -4,11 +4,11 @@ Same observations, same initialisation (the reference's poses of frames 0 and 1,
 from their difference), dt = 1 frame, and the reference's error metrics:
   rot_err_deg   = max_i arccos(R_est[:, i] . R_gt[:, i])
   trans_err_pct = 100 |t_est - t_gt| / |t_gt|     (t of X_cam = R X_world + t)
-averaged over frames 1..199. Our filter differs from the reference in what METHOD.md lists:
+averaged over frames 1..199. Our filter differs from the reference in what docs/method.md §5 and §9.4 describe:
 variances (not standard deviations) on R, full covariance (no zeroed cross terms), Joseph
 form, process Jacobians at the prior.
 
-    python -m bench.reference_vector [--sigma-mode per_point|frame|reference]
+    python -m bench.reference_vector [--sigma-mode per_point|frame|reference] [--json PATH]
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import numpy as np
 
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.ekf import CameraEKF
-from .common import shared_data
+from .common import shared_data, write_json
 
 METHODS = ('EKFPnP', 'EPnP_GN', 'EPnP', 'MLPnP', 'CEPPnP', 'OPnP', 'RPnP', 'ASPnP')
 
@@ -68,7 +68,7 @@ def run(folder: Path, sigma_mode: str = 'frame', accel_sigma: float = 0.05,
         R_cw, t_cw = row[2:11].reshape(3, 3), row[11:14]
         return geo.invert_T(geo.make_T(R_cw, t_cw))
 
-    # initialisation of the reference (METHOD.md sec. 1 step 2): frames 0 and 1
+    # initialisation of the reference (docs/method.md §3.6): frames 0 and 1
     T0, T1 = T_world_cam_of(ref[0]), T_world_cam_of(ref[1])
     v = T1[:3, 3] - T0[:3, 3]
     w = geo.quat_to_rotvec(geo.matrix_to_quat(T0[:3, :3].T @ T1[:3, :3]))
@@ -116,12 +116,15 @@ def main(argv: list[str] | None = None) -> int:
                         choices=('per_point', 'frame', 'reference'))
     parser.add_argument('--accel-sigma', type=float, default=0.05)
     parser.add_argument('--iterations', type=int, default=1)
+    parser.add_argument('--json', type=Path, help='also write the result to this file')
     args = parser.parse_args(argv)
     folder = shared_data('ekfpnp_synthetic_sigma3')
     if folder is None:
         print('../shared/data/ekfpnp_synthetic_sigma3 is absent')
         return 1
     res = run(folder, args.sigma_mode, args.accel_sigma, args.accel_sigma, args.iterations)
+    if args.json:
+        write_json(args.json, res)
     print(f'{"method":<12} {"rot err deg":>12} {"trans err %":>12}')
     for name in ('ours', *METHODS):
         r = res[name]

@@ -1,4 +1,4 @@
-"""Every benchmark of METHOD.md in one run: report.md, results.json, PNG plots, summary.
+"""Every experiment of the papers (docs/method.md) in one run: report.md, results.json, PNG plots, summary.
 
     python -m bench.run_all --out bench/results [--quick]
 
@@ -57,94 +57,131 @@ def _table(header: list[str], rows: list[list]) -> str:
 
 
 # ============================================================================ summary
+def _rows_bunny(b: dict) -> list[list[str]]:
+    """Summary rows: EKF vs EPnP on the bunny, the noise sweep, NEES."""
+    rows = []
+    r = b['ratio_ekf_over_epnp']
+    rows.append(['bunny sigma=3px: EKF error / EPnP error (trans, rot)',
+                 f'{_f(r["trans"])}, {_f(r["rot"])}',
+                 'EPnP above EKF everywhere; EKFPnP 0.43-0.59 x EPnP+GN (test vector)',
+                 'EKF better' + ('' if max(r.values()) < 0.6 else ', by less than the paper')])
+    c = b['checks']
+    rows.append(['bunny: poses where EPnP error > EKF error (trans, rot)',
+                 f'{100 * c["frac_poses_epnp_above_ekf_trans"]:.0f} %, '
+                 f'{100 * c["frac_poses_epnp_above_ekf_rot"]:.0f} %', '100 %',
+                 'reproduced' if c['epnp_above_ekf_everywhere_trans'] else 'not everywhere'])
+    sw = b['sweep']
+    rows.append(['bunny noise sweep: EPnP at 0 px / at 5 px (trans % path)',
+                 f'{sw["epnp_trans"][0]:.1e} / {_f(sw["epnp_trans"][-1], 3)} '
+                 f'(EKF {_f(sw["ekf_trans"][0], 3)} / {_f(sw["ekf_trans"][-1], 3)})',
+                 'EPnP ~0 at 0 px, very noise-sensitive; EKF much less',
+                 'partly: EPnP ~0 at 0 px, EKF grows slower' if sw['ekf_trans'][-1] <
+                 sw['epnp_trans'][-1] else 'not reproduced'])
+    rows.append(['bunny EKF pose NEES (mean, 6 ideal)', _f(b['nees']['ekf_mean']),
+                 'n/a (not reported)', 'consistent' if 4.5 < b['nees']['ekf_mean'] < 8
+                 else 'inconsistent'])
+    return rows
+
+
+def _rows_consistency(c: dict) -> list[list[str]]:
+    """Summary rows: NEES on the smooth orbits."""
+    return [['orbit EKF pose NEES (mean, 6 ideal)', _f(c['nees_mean']), 'n/a',
+             'consistent' if 4.5 < c['nees_mean'] < 8 else 'inconsistent']]
+
+
+def _rows_fading_memory(fm: dict) -> list[list[str]]:
+    """Summary rows: best S and the three turntable cases."""
+    rows = []
+    s = fm['focal']['summary']
+    rows.append(['fading memory (2 % focal error): best S on (a)',
+                 _f(s['S_tuned_on_a'], 3), '1.009', 'effect tiny, see section 2'])
+    rows.append(['(b) yaw+pitch 20: heading / pitch error reduction [deg]',
+                 f'{_f(s["b_yaw20_pitch20"]["heading_reduction_deg"], 4)} / '
+                 f'{_f(s["b_yaw20_pitch20"]["pitch_reduction_deg"], 4)}',
+                 '2.4158 / 0.1782', 'not reproduced (nothing to fix)'])
+    cc = s['c_yaw70']
+    rows.append(['(c) yaw 70 deg: max heading error plain / with S [deg]',
+                 f'{_f(cc["plain_heading_max_abs"])} / {_f(cc["tuned_heading_max_abs"])}',
+                 '> 4 / < 1.5', 'plain filter already < 1.5'
+                 if cc['plain_heading_max_abs'] < 1.5 else 'see section 2'])
+    return rows
+
+
+def _rows_precise_points(pp: dict) -> list[list[str]]:
+    """Summary rows: share of precise map points per sequence."""
+    rows = []
+    for key, label in (('synthetic_room', 'synthetic room'), ('kitti06', 'KITTI 06')):
+        r = pp.get(key, {})
+        if 'fraction_mean' in r:
+            rows.append([f'precise pts ({label}): X % precise in 80 % of images',
+                         f'{_f(r["pct_points_precise_in_80pct_of_images"], 1)} %', '89 %',
+                         'below the paper' if r['pct_points_precise_in_80pct_of_images']
+                         < 89 else 'at or above the paper'])
+    return rows
+
+
+def _rows_real_compare(rc: dict) -> list[list[str]]:
+    """Summary rows: ATE per estimator on the real sequences."""
+    rows = []
+    for s in ('kitti06_f0-50', 'middlebury_dino'):
+        r = rc.get(s, {})
+        if 'ekf' in r:
+            rows.append([f'{s}: ATE % of path EKF / IEKF / EPnP',
+                         ' / '.join(_f(r[e]['ate_pct_path']['mean']) for e in
+                                    ('ekf', 'iekf', 'epnp')),
+                         'EKF error grows slower than PnP\'s (dino, qualitative)',
+                         'EKF better' if min(r['ekf']['ate_pct_path']['mean'],
+                                             r['iekf']['ate_pct_path']['mean'])
+                         < r['epnp']['ate_pct_path']['mean'] else 'EPnP better'])
+    return rows
+
+
+def _rows_throughput(tp: dict) -> list[list[str]]:
+    """Summary rows: core frames/s and ROS latency."""
+    rows = []
+    d, k = tp['demo_640x480'], tp.get('kitti_1226x370', {})
+    rows.append(['core frames/s 640x480 / 1226x370', f'{_f(d["fps"], 0)} / '
+                 f'{_f(k.get("fps"), 0)}', '~10 fps (Li et al., i7, 2160 frames)',
+                 'faster'])
+    lat = tp.get('latency', {})
+    if 'e2e_p50_ms' in lat:
+        rows.append(['vo_node latency p50 / p95 [ms], 30 Hz 640x480',
+                     f'{_f(lat["e2e_p50_ms"], 1)} / {_f(lat["e2e_p95_ms"], 1)}', '-',
+                     f'{lat["odometry_received"]}/{lat["frames_sent"]} frames answered'])
+    return rows
+
+
+def _rows_scaling(sc: dict) -> list[list[str]]:
+    """Summary rows: update cost against the number of points."""
+    return [['update cost slope (log-log) camera-only / EKF-SLAM',
+             f'{_f(sc["camera_only_slope"])} / {_f(sc["slam_slope"])}',
+             'O(n) / O(n^3)', 'linear vs super-linear'
+             if sc['camera_only_slope'] < 1.5 < sc['slam_slope'] else 'see section 6']]
+
+
+def _rows_memory(m: dict) -> list[list[str]]:
+    """Summary rows: RSS over the long run."""
+    return [[f'memory over {m["frames"]} frames: RSS start / end / growth',
+             f'{_f(m["rss_start_mb"], 0)} / {_f(m["rss_end_mb"], 0)} MiB / '
+             f'{_f(m["rss_growth_second_half_mb_per_1000_frames"], 2)} MiB per 1k',
+             'flat', 'flat' if m['rss_flat'] else 'growing']]
+
+
+#: the summary's rows per section, in the order printed
+SUMMARY_ROWS = (
+    ('bunny', _rows_bunny),
+    ('consistency', _rows_consistency),
+    ('fading_memory', _rows_fading_memory),
+    ('precise_points', _rows_precise_points),
+    ('real_compare', _rows_real_compare),
+    ('throughput', _rows_throughput),
+    ('scaling', _rows_scaling),
+    ('memory', _rows_memory))
+
+
 def summary_rows(R: dict) -> list[list[str]]:
     """(figure, ours, paper / reference, verdict) for the printed summary."""
-    rows = []
-    b = R.get('bunny')
-    if b:
-        r = b['ratio_ekf_over_epnp']
-        rows.append(['bunny sigma=3px: EKF error / EPnP error (trans, rot)',
-                     f'{_f(r["trans"])}, {_f(r["rot"])}',
-                     'EPnP above EKF everywhere; EKFPnP 0.43-0.59 x EPnP+GN (test vector)',
-                     'EKF better' + ('' if max(r.values()) < 0.6 else ', by less than the paper')])
-        c = b['checks']
-        rows.append(['bunny: poses where EPnP error > EKF error (trans, rot)',
-                     f'{100 * c["frac_poses_epnp_above_ekf_trans"]:.0f} %, '
-                     f'{100 * c["frac_poses_epnp_above_ekf_rot"]:.0f} %', '100 %',
-                     'reproduced' if c['epnp_above_ekf_everywhere_trans'] else 'not everywhere'])
-        sw = b['sweep']
-        rows.append(['bunny noise sweep: EPnP at 0 px / at 5 px (trans % path)',
-                     f'{sw["epnp_trans"][0]:.1e} / {_f(sw["epnp_trans"][-1], 3)} '
-                     f'(EKF {_f(sw["ekf_trans"][0], 3)} / {_f(sw["ekf_trans"][-1], 3)})',
-                     'EPnP ~0 at 0 px, very noise-sensitive; EKF much less',
-                     'partly: EPnP ~0 at 0 px, EKF grows slower' if sw['ekf_trans'][-1] <
-                     sw['epnp_trans'][-1] else 'not reproduced'])
-        rows.append(['bunny EKF pose NEES (mean, 6 ideal)', _f(b['nees']['ekf_mean']),
-                     'n/a (not reported)', 'consistent' if 4.5 < b['nees']['ekf_mean'] < 8
-                     else 'inconsistent'])
-    c = R.get('consistency')
-    if c:
-        rows.append(['orbit EKF pose NEES (mean, 6 ideal)', _f(c['nees_mean']), 'n/a',
-                     'consistent' if 4.5 < c['nees_mean'] < 8 else 'inconsistent'])
-    fm = R.get('fading_memory')
-    if fm:
-        s = fm['focal']['summary']
-        rows.append(['fading memory (2 % focal error): best S on (a)',
-                     _f(s['S_tuned_on_a'], 3), '1.009', 'effect tiny, see section 2'])
-        rows.append(['(b) yaw+pitch 20: heading / pitch error reduction [deg]',
-                     f'{_f(s["b_yaw20_pitch20"]["heading_reduction_deg"], 4)} / '
-                     f'{_f(s["b_yaw20_pitch20"]["pitch_reduction_deg"], 4)}',
-                     '2.4158 / 0.1782', 'not reproduced (nothing to fix)'])
-        cc = s['c_yaw70']
-        rows.append(['(c) yaw 70 deg: max heading error plain / with S [deg]',
-                     f'{_f(cc["plain_heading_max_abs"])} / {_f(cc["tuned_heading_max_abs"])}',
-                     '> 4 / < 1.5', 'plain filter already < 1.5'
-                     if cc['plain_heading_max_abs'] < 1.5 else 'see section 2'])
-    pp = R.get('precise_points')
-    if pp:
-        for key, label in (('synthetic_room', 'synthetic room'), ('kitti06', 'KITTI 06')):
-            r = pp.get(key, {})
-            if 'fraction_mean' in r:
-                rows.append([f'precise pts ({label}): X % precise in 80 % of images',
-                             f'{_f(r["pct_points_precise_in_80pct_of_images"], 1)} %', '89 %',
-                             'below the paper' if r['pct_points_precise_in_80pct_of_images']
-                             < 89 else 'at or above the paper'])
-    rc = R.get('real_compare')
-    if rc:
-        for s in ('kitti06_f0-50', 'middlebury_dino'):
-            r = rc.get(s, {})
-            if 'ekf' in r:
-                rows.append([f'{s}: ATE % of path EKF / IEKF / EPnP',
-                             ' / '.join(_f(r[e]['ate_pct_path']['mean']) for e in
-                                        ('ekf', 'iekf', 'epnp')),
-                             'EKF error grows slower than PnP\'s (dino, qualitative)',
-                             'EKF better' if min(r['ekf']['ate_pct_path']['mean'],
-                                                 r['iekf']['ate_pct_path']['mean'])
-                             < r['epnp']['ate_pct_path']['mean'] else 'EPnP better'])
-    tp = R.get('throughput')
-    if tp:
-        d, k = tp['demo_640x480'], tp.get('kitti_1226x370', {})
-        rows.append(['core frames/s 640x480 / 1226x370', f'{_f(d["fps"], 0)} / '
-                     f'{_f(k.get("fps"), 0)}', '~10 fps (Li et al., i7, 2160 frames)',
-                     'faster'])
-        lat = tp.get('latency', {})
-        if 'e2e_p50_ms' in lat:
-            rows.append(['vo_node latency p50 / p95 [ms], 30 Hz 640x480',
-                         f'{_f(lat["e2e_p50_ms"], 1)} / {_f(lat["e2e_p95_ms"], 1)}', '-',
-                         f'{lat["odometry_received"]}/{lat["frames_sent"]} frames answered'])
-    sc = R.get('scaling')
-    if sc:
-        rows.append(['update cost slope (log-log) camera-only / EKF-SLAM',
-                     f'{_f(sc["camera_only_slope"])} / {_f(sc["slam_slope"])}',
-                     'O(n) / O(n^3)', 'linear vs super-linear'
-                     if sc['camera_only_slope'] < 1.5 < sc['slam_slope'] else 'see section 6'])
-    m = R.get('memory')
-    if m:
-        rows.append([f'memory over {m["frames"]} frames: RSS start / end / growth',
-                     f'{_f(m["rss_start_mb"], 0)} / {_f(m["rss_end_mb"], 0)} MiB / '
-                     f'{_f(m["rss_growth_second_half_mb_per_1000_frames"], 2)} MiB per 1k',
-                     'flat', 'flat' if m['rss_flat'] else 'growing'])
-    return rows
+    return [row for key, rows_of in SUMMARY_ROWS if R.get(key) for row in rows_of(R[key])]
 
 
 def print_summary(rows: list[list[str]]) -> str:
@@ -170,12 +207,9 @@ def _slope_ratio(sw: dict) -> float:
     return float(k_e / k_p)
 
 
-def section_bunny(b: dict, c: dict | None, quick: bool) -> str:
-    s = b['setup']
-    ck = b['checks']
-    sw = b['sweep']
-    m = b['mean']
-    out = [f"""## 1. Synthetic: the Stanford bunny (METHOD.md sec. 1)
+def _bunny_setup(s: dict) -> str:
+    """Section 1's title and the experiment's setup."""
+    return f"""## 1. Synthetic: the Stanford bunny (docs/method.md §1)
 
 **Setup.** {s['points']} bunny vertices scaled to a 1 m object, camera {s['image']} with
 f = {s['f_px']:g} px, {s['poses']} poses at {s['rate_hz']:g} Hz on a {_f(s['path_length_m'])} m path
@@ -195,29 +229,41 @@ roll/pitch/yaw difference.
 
 ![per pose](bunny_per_pose.png)
 
-""", _table(['mean over poses 2-54', 'EKF (ours)', 'EPnP+LM', 'EKF / EPnP',
-             'paper (EKFPnP / EPnP+GN)'],
-            [['translation [% of path]', _f(m['ekf_trans_pct'], 3), _f(m['epnp_trans_pct'], 3),
-              _f(b['ratio_ekf_over_epnp']['trans']), '0.43-0.59 (test vector, METHOD.md)'],
-             ['rotation [deg]', _f(m['ekf_rot_deg'], 3), _f(m['epnp_rot_deg'], 3),
-              _f(b['ratio_ekf_over_epnp']['rot']), '0.43-0.59']]),
-        '\n\n', _table(['paper\'s qualitative finding', 'reproduced?', 'detail'], [
-            ['EPnP error above the EKF everywhere',
-             _yes(ck['epnp_above_ekf_everywhere_trans'] and ck['epnp_above_ekf_everywhere_rot']),
-             f'EPnP worse at {100 * ck["frac_poses_epnp_above_ekf_trans"]:.0f} % of poses '
-             f'(translation), {100 * ck["frac_poses_epnp_above_ekf_rot"]:.0f} % (rotation)'],
-            ['EPnP worst at the ends (far from the object)', _yes(ck['epnp_worst_at_ends']),
-             'outer thirds vs middle third'],
-            ['EKF translation error peaks mid-sequence', _yes(ck['ekf_trans_peak_mid_sequence']),
-             f'our peak: pose {ck["ekf_trans_peak_frame"]}'],
-            ['EPnP ~0 with zero noise', _yes(ck['epnp_zero_at_zero_noise']),
-             f'{sw["epnp_trans"][0]:.1e} % of path'],
-            ['EKF much less noise-sensitive than EPnP',
-             'less sensitive, not much less' if 0.5 <= _slope_ratio(sw) < 0.95 else
-             _yes(_slope_ratio(sw) < 0.5),
-             f'error grows {_f(_slope_ratio(sw))} x as fast with sigma as EPnP\'s; at 5 px EKF '
-             f'{_f(sw["ekf_trans"][-1], 3)} vs EPnP {_f(sw["epnp_trans"][-1], 3)} % of path']]),
-        f"""
+"""
+
+
+def _bunny_findings(b: dict) -> str:
+    """Mean errors against EPnP, and the paper's qualitative findings checked."""
+    ck, sw, m = b['checks'], b['sweep'], b['mean']
+    means = _table(
+        ['mean over poses 2-54', 'EKF (ours)', 'EPnP+LM', 'EKF / EPnP',
+         'paper (EKFPnP / EPnP+GN)'],
+        [['translation [% of path]', _f(m['ekf_trans_pct'], 3), _f(m['epnp_trans_pct'], 3),
+          _f(b['ratio_ekf_over_epnp']['trans']), '0.43-0.59 (test vector, docs/method.md §9.4)'],
+         ['rotation [deg]', _f(m['ekf_rot_deg'], 3), _f(m['epnp_rot_deg'], 3),
+          _f(b['ratio_ekf_over_epnp']['rot']), '0.43-0.59']])
+    findings = _table(['paper\'s qualitative finding', 'reproduced?', 'detail'], [
+        ['EPnP error above the EKF everywhere',
+         _yes(ck['epnp_above_ekf_everywhere_trans'] and ck['epnp_above_ekf_everywhere_rot']),
+         f'EPnP worse at {100 * ck["frac_poses_epnp_above_ekf_trans"]:.0f} % of poses '
+         f'(translation), {100 * ck["frac_poses_epnp_above_ekf_rot"]:.0f} % (rotation)'],
+        ['EPnP worst at the ends (far from the object)', _yes(ck['epnp_worst_at_ends']),
+         'outer thirds vs middle third'],
+        ['EKF translation error peaks mid-sequence', _yes(ck['ekf_trans_peak_mid_sequence']),
+         f'our peak: pose {ck["ekf_trans_peak_frame"]}'],
+        ['EPnP ~0 with zero noise', _yes(ck['epnp_zero_at_zero_noise']),
+         f'{sw["epnp_trans"][0]:.1e} % of path'],
+        ['EKF much less noise-sensitive than EPnP',
+         'less sensitive, not much less' if 0.5 <= _slope_ratio(sw) < 0.95 else
+         _yes(_slope_ratio(sw) < 0.5),
+         f'error grows {_f(_slope_ratio(sw))} x as fast with sigma as EPnP\'s; at 5 px EKF '
+         f'{_f(sw["ekf_trans"][-1], 3)} vs EPnP {_f(sw["epnp_trans"][-1], 3)} % of path']])
+    return means + '\n\n' + findings
+
+
+def _bunny_sweep(s: dict, sw: dict, sweep_runs: int) -> str:
+    """The reading of the results, and the noise sweep."""
+    reading = f"""
 
 **Reading.** The EKF beats per-frame EPnP on average (ratio above), as the paper finds,
 but by a smaller factor than the paper's and not at every single pose: with 453 points per
@@ -236,15 +282,20 @@ measurement is weakest relative to the motion prior.
 
 ![noise sweep](bunny_noise_sweep.png)
 
-""", _table(['sigma [px]'] + [f'{x:g}' for x in sw['sigma_px']], [
-            ['EKF translation [% path]'] + [_f(v, 3) for v in sw['ekf_trans']],
-            ['EPnP translation [% path]'] + [_f(v, 3) for v in sw['epnp_trans']],
-            ['EKF rotation [deg]'] + [_f(v, 3) for v in sw['ekf_rot']],
-            ['EPnP rotation [deg]'] + [_f(v, 3) for v in sw['epnp_rot']],
-            ['EKF NEES (6 ideal)'] + [_f(v, 2) for v in sw['ekf_nees']]]),
-        f"\n\n({b['sweep_runs']} runs per noise level; at 0 px the filter assumes "
-        "0.1 px, hence its NEES is low there.)\n"]
-    n = b['nees']
+"""
+    sweep = _table(['sigma [px]'] + [f'{x:g}' for x in sw['sigma_px']], [
+        ['EKF translation [% path]'] + [_f(v, 3) for v in sw['ekf_trans']],
+        ['EPnP translation [% path]'] + [_f(v, 3) for v in sw['epnp_trans']],
+        ['EKF rotation [deg]'] + [_f(v, 3) for v in sw['ekf_rot']],
+        ['EPnP rotation [deg]'] + [_f(v, 3) for v in sw['epnp_rot']],
+        ['EKF NEES (6 ideal)'] + [_f(v, 2) for v in sw['ekf_nees']]])
+    return (reading + sweep + f"\n\n({sweep_runs} runs per noise level; at 0 px the filter "
+            "assumes 0.1 px, hence its NEES is low there.)\n")
+
+
+def _bunny_nees(b: dict, c: dict | None) -> str:
+    """Consistency of the published covariance: NEES on the bunny and the orbits."""
+    s, n = b['setup'], b['nees']
     rows = [['bunny, sigma = 3 px', f'{s["runs"]} x 53', _f(n['ekf_mean']), _f(n['ekf_median']),
              f'{_f(n["anees_95_bounds"][0])}-{_f(n["anees_95_bounds"][1])}',
              f'{100 * n["frac_frames_anees_in_bounds"]:.0f} %']]
@@ -254,16 +305,22 @@ measurement is weakest relative to the motion prior.
                      _f(c['nees_median']),
                      f'{_f(c["anees_95_bounds"][0])}-{_f(c["anees_95_bounds"][1])}',
                      f'{100 * c["frac_frames_anees_in_bounds"]:.0f} %'])
-    out += ['\n### Consistency of the published covariance (NEES, METHOD.md sec. 4)\n\n',
-            'NEES = e^T P^-1 e of the 6-dof pose error (position, world rotation vector) '
-            'under the EKF\'s own 6x6 covariance; an honest covariance gives a mean of 6. '
-            'The band is the 95 % interval of the NEES averaged over the runs at one frame '
-            '(chi-square, Bar-Shalom et al. 2001); ~95 % of the frames should fall in it.\n\n',
-            _table(['runs', 'runs x frames', 'mean NEES', 'median', '95 % band (per frame)',
-                    'frames in band'], rows),
-            f"\n\nFor reference, EPnP's Gauss-Newton covariance gives a mean NEES of "
-            f"{_f(n['epnp_mean'])} on the bunny runs.\n"]
-    return ''.join(out)
+    return ''.join([
+        '\n### Consistency of the published covariance (NEES, docs/method.md §11.2)\n\n',
+        'NEES = e^T P^-1 e of the 6-dof pose error (position, world rotation vector) '
+        'under the EKF\'s own 6x6 covariance; an honest covariance gives a mean of 6. '
+        'The band is the 95 % interval of the NEES averaged over the runs at one frame '
+        '(chi-square, Bar-Shalom et al. 2001); ~95 % of the frames should fall in it.\n\n',
+        _table(['runs', 'runs x frames', 'mean NEES', 'median', '95 % band (per frame)',
+                'frames in band'], rows),
+        f"\n\nFor reference, EPnP's Gauss-Newton covariance gives a mean NEES of "
+        f"{_f(n['epnp_mean'])} on the bunny runs.\n"])
+
+
+def section_bunny(b: dict, c: dict | None, quick: bool) -> str:
+    """Section 1: the bunny experiment and the consistency (NEES) of the covariance."""
+    return ''.join([_bunny_setup(b['setup']), _bunny_findings(b),
+                    _bunny_sweep(b['setup'], b['sweep'], b['sweep_runs']), _bunny_nees(b, c)])
 
 
 def _ext_note(summary: dict) -> str:
@@ -276,7 +333,7 @@ def _ext_note(summary: dict) -> str:
 
 def section_fading(fm: dict, quick: bool) -> str:
     s = fm['setup']
-    out = [f"""## 2. Fading memory under model error: the turntable (METHOD.md sec. 2)
+    out = [f"""## 2. Fading memory under model error: the turntable (docs/method.md §3.4)
 
 **Setup.** A camera rotating about its own centre at {s['rate_hz']:g} Hz, {s['image']} images,
 smooth back-and-forth motion (period 4 s, starting at rest) for {s['seconds']:g} s;
@@ -340,7 +397,7 @@ one. Fading memory then
 only acts as extra process noise: it reduces the lag at the reversals slightly and keeps
 helping beyond 1.02, because the motion of (c) is faster than the tuning of (a) assumes.
 An S this small cannot matter much with a fixed map; it would with in-filter points
-(section 3 of METHOD.md, in-filter point refinement), which this experiment does not cover.
+(docs/method.md §8, in-filter point refinement), which this experiment does not cover.
 """)
     return ''.join(out)
 
@@ -358,7 +415,7 @@ def section_precise(pp: dict, quick: bool) -> str:
                      f'{r["pct_images_above_89pct"]:.1f} %',
                      f'{_f(r["reproj_err_median_px"])} / {_f(r["reproj_err_p90_px"])}'])
     return ''.join([
-        """## 3. Precisely reconstructed points (METHOD.md sec. 3 metric)
+        """## 3. Precisely reconstructed points (docs/method.md §8 metric)
 
 A map point observed in an image is *precise* when it reprojects within 1 px of its tracked
 position under the EKF's pose for that image (Li et al. 2016). Per image we count the map
@@ -428,7 +485,7 @@ bootstrap from the first two ground-truth poses (the paper's protocol).
                             f'{best_f.upper()})')
     out.append('**Reading.** ' + (lambda t: t[:1].upper() + t[1:])('; '.join(verdicts)) + '. ' + """The paper's
 real-data claim is qualitative (error propagates more slowly with the EKF, on dino and
-templeRing, against CEPPnP and MLPnP); METHOD.md gives no number to put beside these. The
+templeRing, against CEPPnP and MLPnP); the papers give no number to put beside these. The
 filter's margin over EPnP is of the same size as on the bunny (0.6-0.8 x): with many
 well-spread points per frame the per-frame solution is already good and the motion model
 adds what one frame lacks. EPnP's std of 0 on KITTI is not a typo: OpenCV's RANSAC is
@@ -469,7 +526,7 @@ def section_speed(tp: dict, quick: bool) -> str:
     return ''.join([f"""## 5. Speed ({tp['machine']})
 
 Core only (images decoded beforehand), best of {tp['repeat']} passes, mean ms per frame by
-stage. Li et al. processed 2160 frames in 223.56 s on an i7 (~10 frames/s); METHOD.md's
+stage. Li et al. processed 2160 frames in 223.56 s on an i7 (~10 frames/s); the papers'
 measurement of the reference EKFPnP (Octave) is 5.7 ms per step at 100 points (our update
 stage includes 1-point RANSAC over up to 400 points). Wall-clock on a shared 2-core machine
 {f"(load average when measured: {tp['loadavg']})" if 'loadavg' in tp else ''}; other jobs slow these figures down,
@@ -573,7 +630,7 @@ Generated by `python -m bench.run_all{' --quick' if quick else ''}` on {meta['ma
 total wall time {meta['wall_s']:.0f} s (per section: {', '.join(f'{k} {v:.0f} s' for k, v in
 meta['section_wall_s'].items())}). Every figure is also in `results.json`.
 {'**Quick mode**: fewer runs, frames and sizes than the full benchmark; the figures are noisier.' if quick else ''}
-Papers' figures come from METHOD.md. "EKF" is our hybrid camera-only EKF throughout.
+Papers' figures are the papers' own (docs/method.md cites them). "EKF" is our hybrid camera-only EKF throughout.
 
 ## Summary
 

@@ -1,6 +1,6 @@
 """Cost of one EKF update against the number of observed points: hybrid vs EKF-SLAM.
 
-The hybrid method's reason to exist (METHOD.md sec. 1): with the map out of the state,
+The hybrid method's reason to exist (docs/method.md §1): with the map out of the state,
 the camera-only update (13 states, Woodbury gain: a 13x13 solve) costs O(n) in the number
 n of observed points, while filter SLAM with the points in the state (13 + 3n) needs the
 2n x 2n innovation covariance and the (13+3n)^2 covariance update: O(n^3).
@@ -31,7 +31,7 @@ from scipy.linalg import cho_factor, cho_solve
 
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.ekf import POS, QUAT, STATE_DIM, CameraEKF
-from .common import write_json
+from .common import pyplot, write_json
 
 N_POINTS = (50, 100, 200, 500, 1000, 2000, 5000)
 SIGMA_PX = 1.0
@@ -177,10 +177,7 @@ def measure(quick: bool = False) -> dict:
 
 
 def plot(res: dict, out: Path) -> list[str]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    out.mkdir(parents=True, exist_ok=True)
+    plt = pyplot(out)
     fig, ax = plt.subplots(figsize=(7, 5))
     ax.loglog(res['n_points'], res['camera_only_ms'], 'bo-',
               label=f'camera-only EKF, 13 states (slope {res["camera_only_slope"]:.2f})')

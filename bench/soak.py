@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import machine, write_json
-from ekf_vo.ros.harness import Feeder, Harness, NodeProcess
-from .speed import load_demo_frames
+from ekf_vo.ros.harness import Feeder, Harness, NodeProcess, domain_id_for
+from ekf_vo.tools.demo import load_demo_frames
+from .common import machine, pyplot, write_json
 
-DOMAIN = 152
+DOMAIN = domain_id_for(__name__)
 
 
 def rss_mb(pid: int) -> float:
@@ -32,7 +32,7 @@ def rss_mb(pid: int) -> float:
 
 
 def soak(n_frames: int, rate_hz: float, out: Path, sample_every: int = 500) -> dict:
-    from ekf_vo.ros import conversions as conv
+    from ekf_vo import bridge as conv
     info, frames = load_demo_frames()
     cycle = frames + frames[::-1][1:-1]
     dt = frames[1][0] - frames[0][0]
@@ -91,9 +91,7 @@ def soak(n_frames: int, rate_hz: float, out: Path, sample_every: int = 500) -> d
 
 
 def _plot(samples: list, png: Path) -> None:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = pyplot(png.parent)
     x = [s['frames_sent'] for s in samples]
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
     ax[0].plot(x, [s['rss_mb'] for s in samples])

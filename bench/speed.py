@@ -10,33 +10,16 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from ekf_vo.config import VoConfig
-from ekf_vo.core.camera import PinholeCamera
-from ekf_vo.core.pipeline import VisualOdometry
+from ekf_vo.core.stream import VoStream
+from ekf_vo.tools.demo import load_demo_frames
 from .common import machine, shared_data
 
-DEMO_BAG = Path(__file__).resolve().parents[1] / 'bags' / 'demo'
-
-
-def load_demo_frames(bag: Path = DEMO_BAG) -> tuple[dict, list]:
-    from ekf_vo.ros import conversions as conv   # message field access only, no rclpy import
-    from ekf_vo.tools import bagio
-    info, frames = None, []
-    for _, msgtype, _, msg in bagio.iter_bag(bag):
-        if msgtype.endswith('CameraInfo') and info is None:
-            info = conv.camera_info_to_dict(msg)
-        elif msgtype.endswith('CompressedImage') or msgtype.endswith('/Image'):
-            frames.append((conv.stamp_to_ns(msg.header.stamp), bagio.decode_image(
-                msgtype, msg)))
-    return info, frames
-
-
 def load_kitti_frames() -> tuple[dict, list] | None:
-    from ekf_vo.tools.dataset import load_folder
+    from ekf_vo.io.dataset import load_folder
     folder = shared_data('kitti06_f0-50')
     if folder is None:
         return None
@@ -49,11 +32,12 @@ def time_core(info: dict, frames: list, cfg: VoConfig | None = None, repeat: int
     """Best-of-`repeat` frames/s and mean / p95 per-stage ms over the frames."""
     best = None
     for rep in range(repeat):
-        vo = VisualOdometry(cfg or VoConfig(), PinholeCamera.from_camera_info(info), seed=rep)
+        stream = VoStream(cfg or VoConfig(), seed=rep)
+        stream.set_camera(info)
         stages: dict[str, list] = {}
         t0 = time.perf_counter()
         for stamp, gray in frames:
-            res = vo.process(gray, stamp)
+            res = stream.process(gray, stamp)
             for key, ms in res.timings_ms.items():
                 stages.setdefault(key, []).append(ms)
         wall = time.perf_counter() - t0

@@ -14,8 +14,9 @@ import logging
 import sys
 from pathlib import Path
 
-from .common import machine, section_main
-from .speed import load_demo_frames, load_kitti_frames, time_core
+from ekf_vo.tools.demo import load_demo_frames
+from .common import machine, pyplot, section_main
+from .speed import load_kitti_frames, time_core
 
 logger = logging.getLogger(__name__)
 
@@ -42,11 +43,8 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
 
 
 def plot(res: dict, out: Path) -> list[str]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = pyplot(out)
     runs = [(k, res[k]) for k in ('demo_640x480', 'kitti_1226x370') if 'fps' in res[k]]
-    out.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(8, 4))
     stages = ['predict', 'track', 'update', 'map']
     for i, (name, r) in enumerate(runs):

@@ -94,9 +94,9 @@ class VoConfig(_Params):
         1.0, 'Distance assigned to the bootstrap baseline (sets the map scale).', 'm',
         1e-6, 1e6, group='bootstrap')
     bootstrap: str = param(
-        'two_view', 'Map bootstrap: two_view (essential matrix, METHOD.md sec. 1) or '
+        'two_view', 'Map bootstrap: two_view (essential matrix, docs/method.md §2.1) or '
         'multi_view (two-view start, PnP + triangulation over the first '
-        'multiview_keyframes keyframes, then a sparse bundle adjustment; METHOD.md 3).',
+        'multiview_keyframes keyframes, then a sparse bundle adjustment; docs/method.md §2.4).',
         choices=('two_view', 'multi_view'), group='bootstrap')
     multiview_keyframes: int = param(
         5, 'Keyframes reconstructed together by the multi_view bootstrap.', 'count', 2, 30,
@@ -122,7 +122,7 @@ class VoConfig(_Params):
         1.0, 'Standard deviation of a feature measurement: the R of the EKF update and '
         'the noise of the EPnP baseline\'s covariance.', 'px', 0.01, 50.0, group='ekf')
     accel_sigma: float = param(
-        5.0, 'Linear acceleration impulse std: velocity noise a*dt per step (METHOD.md 1).',
+        5.0, 'Linear acceleration impulse std: velocity noise a*dt per step (docs/method.md §3).',
         'm/s^2', 1e-6, 1e4, group='ekf')
     angular_accel_sigma: float = param(
         5.0, 'Angular acceleration impulse std: angular velocity noise alpha*dt per step.', 'rad/s^2', 1e-6, 1e4,
@@ -146,7 +146,7 @@ class VoConfig(_Params):
         1.0, 'Reset tracking when the gap between two frames is longer.', 's', 1e-3, 1e3,
         group='ekf')
 
-    # ---- robust update (ekf_vo/core/ransac.py) ----
+    # ---- robust update (ekf_vo/core/robust_update.py) ----
     one_point_ransac: bool = param(True, 'Use 1-point RANSAC (Civera 2010) in the update.',
                                    group='ransac')
     ransac_inlier_px: float = param(
@@ -180,9 +180,9 @@ class VoConfig(_Params):
 
     # ---- in-filter map refinement (ekf_vo/core/point_filter.py) ----
     map_refinement: str = param(
-        'none', 'none: new points are triangulated once (hybrid, METHOD.md sec. 1); '
+        'none', 'none: new points are triangulated once (hybrid, docs/method.md §1); '
         'filter: new tracks enter the EKF state as anchored inverse depths and are frozen '
-        'into the map once accurate (METHOD.md sec. 3); ignored by estimator epnp.',
+        'into the map once accurate (docs/method.md §8); ignored by estimator epnp.',
         choices=('none', 'filter'), group='refinement')
     filter_max_points: int = param(
         40, 'N: most points in the EKF state (state dimension 13 + N).', 'count', 1, 1000,

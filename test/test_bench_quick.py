@@ -11,18 +11,17 @@ import math
 
 import pytest
 
-from bench import run_all
-from bench.common import shared_data
+from .support.benchmarks import run_benchmark
+from .support.data import need_shared_data, shared_data
 
 pytestmark = pytest.mark.data
 
 
 @pytest.fixture(scope='module')
 def quick_run(tmp_path_factory):
-    if shared_data('bunny') is None:
-        pytest.skip('../shared/data/bunny is absent (a fresh clone): benchmark skipped')
+    need_shared_data('bunny', 'benchmark')
     out = tmp_path_factory.mktemp('bench')
-    status = run_all.main(['--quick', '--out', str(out)])
+    status = run_benchmark('run_all', '--quick', '--out', str(out)).returncode
     return status, out, json.loads((out / 'results.json').read_text())
 
 

@@ -1,4 +1,4 @@
-"""Tests for ekf_vo.ros.conversions with real rclpy and real rosbags message classes (no mocks)."""
+"""Tests for ekf_vo.bridge with real rclpy and real rosbags message classes (no mocks)."""
 from __future__ import annotations
 
 import array
@@ -15,8 +15,8 @@ from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 
-from ekf_vo.ros import conversions as cv
-from ekf_vo.ros.conversions import ConversionError
+from ekf_vo import bridge as cv
+from ekf_vo.bridge import ConversionError
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 BACKENDS = {'rclpy': None, 'rosbags': TS}

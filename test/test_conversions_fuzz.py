@@ -16,8 +16,8 @@ from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from ekf_vo.ros import conversions as cv
-from ekf_vo.ros.conversions import ConversionError
+from ekf_vo import bridge as cv
+from ekf_vo.bridge import ConversionError
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 FUZZ = settings(max_examples=300, deadline=None,

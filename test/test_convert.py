@@ -16,9 +16,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bench.common import shared_data
-from ekf_vo.tools import bagio, convert, synth
+from ekf_vo.io import bag as bagio
+from ekf_vo.tools import convert, synth
 from ekf_vo.tools.run import run_bag
+
+from .support.data import need_shared_data
 
 SEED = 5
 N = 20
@@ -346,10 +348,7 @@ def test_convert_then_run_euroc_walk(tmp_path: Path) -> None:
 
 @pytest.mark.data
 def test_convert_then_run_kitti06(tmp_path: Path) -> None:
-    src = shared_data('kitti06_f0-50')
-    if src is None:
-        pytest.skip('../shared/data/kitti06_f0-50 is absent (real KITTI data is not '
-                    'shipped; set EKF_VO_SHARED_DATA to its parent folder)')
+    src = need_shared_data('kitti06_f0-50', 'convert + run on real KITTI data')
     res = convert.convert('folder', src, tmp_path / 'bag')
     assert res.frames == 51 and res.frames_with_gt == 51
     summary = run_bag(tmp_path / 'bag')

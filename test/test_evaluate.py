@@ -1,4 +1,4 @@
-"""Tests for ekf_vo.tools.trajectory_io and ekf_vo.tools.evaluate (evo-based evaluation).
+"""Tests for ekf_vo.io.trajectory and ekf_vo.tools.evaluate (evo-based evaluation).
 
 The key cross-check: ``evaluate()`` uses evo's association, Umeyama alignment and APE/RPE;
 here the same numbers are recomputed with an independent numpy Umeyama implementation.
@@ -15,7 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ekf_vo.tools.evaluate import EvalResult, EvaluationError, evaluate
-from ekf_vo.tools.trajectory_io import read_gt_from_bag, read_trajectory, read_tum, write_tum
+from ekf_vo.io.trajectory import read_gt_from_bag, read_trajectory, read_tum, write_tum
 
 T0 = 1_700_000_000.0  # realistic epoch stamps exercise float precision
 SCALE_EST = 0.37      # estimate is 0.37 x the true size -> evo's Sim(3) scale is 1/0.37

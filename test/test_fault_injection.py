@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import CameraInfo, Image
 
+from ekf_vo import bridge as conv
 from ekf_vo.ros.harness import Feeder, Harness, NodeProcess, domain_id_for
-from bench.speed import load_demo_frames
-from ekf_vo.ros import conversions as conv
+from ekf_vo.tools.demo import load_demo_frames
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_id_for(__name__)

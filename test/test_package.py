@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from ekf_vo.config import NodeConfig, VoConfig, load_yaml_params, split_params, to_yaml
+from ekf_vo.ros.harness import domain_id_for
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -34,7 +35,7 @@ def test_colcon_build_installs_what_ros2_run_executes(tmp_path):
     # a copy of the package as a user's workspace would hold it
     shutil.copytree(REPO, ws / 'src' / 'ekf_vo', ignore=shutil.ignore_patterns(
         '.venv', '.git', 'build', 'install', 'log', 'out', '*.egg-info', '__pycache__',
-        '.pytest_cache', '.hypothesis', 'bags'))
+        '.pytest_cache', '.hypothesis'))
     env = dict(os.environ, PATH=f'{BIN}:{os.environ["PATH"]}')
     proc = subprocess.run([str(colcon), 'build', '--packages-select', 'ekf_vo'], cwd=ws,
                           env=env, capture_output=True, text=True, timeout=600)
@@ -50,11 +51,15 @@ def test_colcon_build_installs_what_ros2_run_executes(tmp_path):
             'import os; d = g("ekf_vo"); print(d);'
             'assert os.path.isfile(os.path.join(d, "config", "ekf_vo.yaml"));'
             'assert os.path.isfile(os.path.join(d, "launch", "ekf_vo.launch.py"));'
-            'assert os.path.isfile(os.path.join(d, "package.xml"))')
+            'assert os.path.isfile(os.path.join(d, "package.xml"));'
+            'assert os.path.isfile(os.path.join(d, "bags", "demo", "metadata.yaml"));'
+            # the demo finds its bag in the install space, not in a source tree
+            'from ekf_vo.tools.demo import demo_bag;'
+            'assert str(demo_bag()) == os.path.join(d, "bags", "demo"), demo_bag()')
     site = next((prefix / 'lib').glob('python3*/site-packages'))
     env_run = dict(env, AMENT_PREFIX_PATH=str(prefix),
                    PYTHONPATH=f'{site}:{env.get("PYTHONPATH", "")}',
-                   ROS_DOMAIN_ID='97')
+                   ROS_DOMAIN_ID=str(domain_id_for(__name__)))
     proc = subprocess.run([sys.executable, '-c', code], env=env_run, capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr

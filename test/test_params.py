@@ -2,10 +2,8 @@
 from __future__ import annotations
 
 import dataclasses
-import zlib
 
 import pytest
-import rclpy
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -14,9 +12,6 @@ from ekf_vo.config import ConfigError, MapNodeConfig, NodeConfig, VoConfig, desc
 from ekf_vo.ros.params import declare_from_dataclass, install_validation
 
 pytestmark = pytest.mark.ros
-
-#: One DDS domain per test module (50..99) so parallel test runs do not cross-talk.
-DOMAIN_ID = 50 + zlib.crc32(__name__.rpartition('.')[2].encode()) % 50
 
 
 @pytest.fixture

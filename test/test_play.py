@@ -1,4 +1,4 @@
-"""ekf_vo.tools.play over real DDS: all messages arrive with their stamps, /clock follows the
+"""ekf_vo.ros.player over real DDS: all messages arrive with their stamps, /clock follows the
 bag (also through a use_sim_time node), topic filter/remap, loop + stop, and the CLI."""
 from __future__ import annotations
 
@@ -6,37 +6,31 @@ import os
 import subprocess
 import sys
 import threading
-import time
 import uuid
-import zlib
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pytest
-import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
 
-from ekf_vo.ros.conversions import image_to_numpy, stamp_to_ns
-from ekf_vo.tools import bagio
-from ekf_vo.tools.play import PlayError, parse_remaps, play_bag, resolve_msg_class
+from ekf_vo.bridge import image_to_numpy, stamp_to_ns
+from ekf_vo.ros.harness import Harness, ros_env
+from ekf_vo.io import bag as bagio
+from ekf_vo.ros.player import PlayError, parse_remaps, play_bag, resolve_msg_class
 
 pytestmark = pytest.mark.ros
 
-#: One DDS domain per test module (50..99) so parallel test runs do not cross-talk.
-DOMAIN_ID = 50 + zlib.crc32(__name__.rpartition('.')[2].encode()) % 50
 #: Per-run topic prefix: two runs of this module at once (same domain) must not cross-talk.
 RUN = f'/t{os.getpid()}_{uuid.uuid4().hex[:6]}'
 IMAGE_TOPIC = f'{RUN}/cam/image_raw'
 INFO_TOPIC = f'{RUN}/cam/camera_info'
 CLOCK_TOPIC = f'{RUN}/clock'
-ROOT = Path(__file__).resolve().parents[1]
 N_FRAMES = 10
 STAMP0 = 1_700_000_000_000_000_000
 PERIOD_NS = 50_000_000
@@ -57,41 +51,6 @@ def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-class Recorder:
-    """Test-side subscriber node + executor; records messages per topic."""
-
-    def __init__(self, context: Context, **node_kwargs: Any) -> None:
-        self.node = Node('play_test', context=context, **node_kwargs)
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        self.msgs: dict[str, list] = {}
-
-    def record(self, msg_type: type, topic: str, qos: QoSProfile) -> list:
-        out = self.msgs.setdefault(topic, [])
-        self.node.create_subscription(msg_type, topic, out.append, qos)
-        return out
-
-    def spin_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            self.executor.spin_once(timeout_sec=0.05)
-        return predicate()
-
-    def close(self) -> None:
-        self.executor.remove_node(self.node)
-        self.executor.shutdown()
-        self.node.destroy_node()
-
-
-@pytest.fixture
-def recorder(context: Context):
-    r = Recorder(context)
-    yield r
-    r.close()
-
-
 def play_in_thread(context: Context, bag: Path, **kwargs: Any
                    ) -> tuple[threading.Thread, dict, Node]:
     """play_bag from its own node in a background thread; result lands in the dict."""
@@ -109,20 +68,20 @@ def play_in_thread(context: Context, bag: Path, **kwargs: Any
     return thread, result, player
 
 
-def test_all_images_with_stamps_and_clock(context: Context, recorder: Recorder,
+def test_all_images_with_stamps_and_clock(context: Context, harness: Harness,
                                           bag: Path) -> None:
-    images = recorder.record(Image, IMAGE_TOPIC, RELIABLE)
-    infos = recorder.record(CameraInfo, INFO_TOPIC, qos_profile_sensor_data)
-    clocks = recorder.record(Clock, CLOCK_TOPIC, RELIABLE)
+    images = harness.record(Image, IMAGE_TOPIC, RELIABLE)
+    infos = harness.record(CameraInfo, INFO_TOPIC, qos_profile_sensor_data)
+    clocks = harness.record(Clock, CLOCK_TOPIC, RELIABLE)
     # A node on sim time (rclpy's TimeSource subscribes /clock best effort, depth 1).
     sim = Node('sim_time_node', context=context,
                cli_args=['--ros-args', '-r', f'/clock:={CLOCK_TOPIC}'],
                parameter_overrides=[Parameter('use_sim_time', value=True)])
-    recorder.executor.add_node(sim)
+    harness.executor.add_node(sim)
     thread, result, player = play_in_thread(context, bag, rate=2.0, start_paused_s=0.2,
                                             wait_for=['*'], remap={'/clock': CLOCK_TOPIC})
     try:
-        assert recorder.spin_until(lambda: len(images) >= N_FRAMES and 'messages' in result,
+        assert harness.spin_until(lambda: len(images) >= N_FRAMES and 'messages' in result,
                                    15.0), f'got {len(images)} images; {result}'
         thread.join(5.0)
         assert 'error' not in result, result.get('error')
@@ -130,17 +89,17 @@ def test_all_images_with_stamps_and_clock(context: Context, recorder: Recorder,
         assert [int(image_to_numpy(m)[0, 0]) for m in images] == [i * 10 for i in range(10)]
         assert images[0].header.frame_id == 'cam_optical'
 
-        assert recorder.spin_until(lambda: len(infos) >= N_FRAMES, 5.0)
+        assert harness.spin_until(lambda: len(infos) >= N_FRAMES, 5.0)
         assert [stamp_to_ns(m.header.stamp) for m in infos] == STAMPS
         np.testing.assert_allclose(np.asarray(infos[0].k).reshape(3, 3), K)
 
-        assert recorder.spin_until(lambda: len(clocks) >= 2 * N_FRAMES, 5.0)  # one per message
-        recorder.spin_until(lambda: False, 0.2)           # no extra ones arrive
+        assert harness.spin_until(lambda: len(clocks) >= 2 * N_FRAMES, 5.0)  # one per message
+        harness.spin_until(lambda: False, 0.2)           # no extra ones arrive
         clock_ns = [stamp_to_ns(m.clock) for m in clocks]
         assert len(clock_ns) == 2 * N_FRAMES
         assert clock_ns == sorted(clock_ns) and clock_ns[0] == STAMP0
         assert clock_ns[-1] == STAMPS[-1]
-        assert recorder.spin_until(
+        assert harness.spin_until(
             lambda: sim.get_clock().now().nanoseconds == STAMPS[-1], 5.0), \
             f'sim time {sim.get_clock().now().nanoseconds} != {STAMPS[-1]}'
 
@@ -152,16 +111,16 @@ def test_all_images_with_stamps_and_clock(context: Context, recorder: Recorder,
         assert not result['stopped'] and result['unmatched'] == []
     finally:
         thread.join(5.0)
-        recorder.executor.remove_node(sim)
+        harness.executor.remove_node(sim)
         sim.destroy_node()
         player.destroy_node()
 
 
-def test_topic_filter_remap_loop_and_stop(context: Context, recorder: Recorder,
+def test_topic_filter_remap_loop_and_stop(context: Context, harness: Harness,
                                           bag: Path) -> None:
-    infos = recorder.record(CameraInfo, f'{RUN}/other/info', RELIABLE)
-    images = recorder.record(Image, IMAGE_TOPIC, RELIABLE)
-    clocks = recorder.record(Clock, CLOCK_TOPIC, RELIABLE)
+    infos = harness.record(CameraInfo, f'{RUN}/other/info', RELIABLE)
+    images = harness.record(Image, IMAGE_TOPIC, RELIABLE)
+    clocks = harness.record(Clock, CLOCK_TOPIC, RELIABLE)
     stop = threading.Event()
     thread, result, player = play_in_thread(
         context, bag, rate=5.0, topics=[INFO_TOPIC.lstrip('/')],    # relative name works too
@@ -169,7 +128,7 @@ def test_topic_filter_remap_loop_and_stop(context: Context, recorder: Recorder,
         loop=True, stop_event=stop, start_paused_s=0.2, wait_for=[f'{RUN}/other/info'])
     try:
         # More than one pass: the loop restarted (and the clock went back to the start).
-        assert recorder.spin_until(lambda: len(infos) >= N_FRAMES + 3, 15.0), len(infos)
+        assert harness.spin_until(lambda: len(infos) >= N_FRAMES + 3, 15.0), len(infos)
         stop.set()
         thread.join(5.0)
         assert not thread.is_alive(), 'play_bag did not honour stop_event'
@@ -210,20 +169,19 @@ def test_errors_and_type_resolution(context: Context, tmp_path: Path, bag: Path)
         node.destroy_node()
 
 
-def test_console_script(context: Context, recorder: Recorder, bag: Path) -> None:
-    images = recorder.record(Image, f'{RUN}/remapped/image', RELIABLE)
-    clocks = recorder.record(Clock, CLOCK_TOPIC, RELIABLE)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID))
+def test_console_script(harness: Harness, bag: Path, domain_id: int) -> None:
+    images = harness.record(Image, f'{RUN}/remapped/image', RELIABLE)
+    clocks = harness.record(Clock, CLOCK_TOPIC, RELIABLE)
     proc = subprocess.Popen(
-        [sys.executable, '-m', 'ekf_vo.tools.play', str(bag), '--rate', '4',
+        [sys.executable, '-m', 'ekf_vo.ros.player', str(bag), '--rate', '4',
          '--remap', f'{IMAGE_TOPIC}:={RUN}/remapped/image', f'/clock:={CLOCK_TOPIC}',
          '--no-clock',
          # Cross-process discovery here can take > 3 s: wait for the match, not a fixed time.
          '--wait-for', f'{RUN}/remapped/image', '--wait-timeout-s', '15',
          '--start-paused-s', '0.3'],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        env=ros_env(domain_id), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert recorder.spin_until(lambda: len(images) >= N_FRAMES, 25.0), \
+        assert harness.spin_until(lambda: len(images) >= N_FRAMES, 25.0), \
             [stamp_to_ns(m.header.stamp) for m in images]
         out, err = proc.communicate(timeout=10)
         assert proc.returncode == 0, err

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from ekf_vo.config import ConfigError, VoConfig
-from ekf_vo.tools import bagio, synth
+from ekf_vo.io import bag as bagio
+from ekf_vo.tools import synth
 from ekf_vo.tools.run import (RunError, make_config, parse_overrides, run_bag,
                               select_topics)
-from ekf_vo.tools.trajectory_io import read_tum
+from ekf_vo.io.trajectory import read_tum
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ekf_vo.tools import bagio, synth
+from ekf_vo.io import bag as bagio
+from ekf_vo.tools import synth
 
 SEED = 3
 

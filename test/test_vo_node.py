@@ -7,8 +7,6 @@ delivered to a subscriber that joins late, ~/reset, and bad input surviving.
 """
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
@@ -16,10 +14,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, PointCloud2
 from std_srvs.srv import Trigger
 
-from bench.speed import load_demo_frames
-from ekf_vo.ros import conversions as conv
-
+from ekf_vo import bridge as conv
 from ekf_vo.ros.harness import Feeder, Harness, NodeProcess, domain_id_for, encode
+from ekf_vo.tools.demo import demo_bag, load_demo_frames
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_id_for(__name__)
@@ -98,8 +95,7 @@ def test_raw_every_encoding_frames_and_late_map(tmp_path, demo):
         assert values['state'] == 'tracking' and int(values['map_points']) > 50
 
         # a subscriber that joins late still gets the map (transient local)
-        clouds: list[PointCloud2] = []
-        h.node.create_subscription(PointCloud2, '/map_points', clouds.append, LATCHED)
+        clouds: list[PointCloud2] = h.record(PointCloud2, '/map_points', LATCHED)
         assert h.spin_until(lambda: clouds, 10.0), 'late subscriber got no map'
         cloud = clouds[-1]
         assert cloud.header.frame_id == 'test_odom'
@@ -130,10 +126,7 @@ def test_compressed_input_reset_and_bad_input(tmp_path, demo):
         bad.format = 'jpeg'
         bad.data = b'not a jpeg at all'
         feed.img_pub.publish(bad)
-        client = h.node.create_client(Trigger, '/vo_node/reset')
-        assert client.wait_for_service(timeout_sec=10.0)
-        future = client.call_async(Trigger.Request())
-        assert h.spin_until(future.done, 10.0) and future.result().success
+        assert h.call(Trigger, '/vo_node/reset', timeout=10.0).success
         n_before = len(feed.odom)
         stamps2 = feed.publish(frames[80:150], make, RATE_HZ)
         feed.wait_last(stamps2[-1])
@@ -145,9 +138,7 @@ def test_compressed_input_reset_and_bad_input(tmp_path, demo):
         # ~/debug_image is computed only while someone subscribes
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import Image
-        debug: list[Image] = []
-        h.node.create_subscription(Image, '/vo_node/debug_image', debug.append,
-                                   qos_profile_sensor_data)
+        debug: list[Image] = h.record(Image, '/vo_node/debug_image', qos_profile_sensor_data)
         assert h.spin_until(lambda: h.node.count_publishers('/vo_node/debug_image') > 0,
                             10.0)
         h.spin_for(1.0)
@@ -165,13 +156,13 @@ def test_bag_played_over_dds_with_sim_time(tmp_path):
     vo_node + map_node in one process using use_sim_time."""
     import threading
 
-    from bench.speed import DEMO_BAG
-    from ekf_vo.tools import bagio
-    from ekf_vo.tools.play import play_bag
-    topics = bagio.bag_topics(DEMO_BAG)
+    from ekf_vo.io import bag as bagio
+    from ekf_vo.ros.player import play_bag
+    bag = demo_bag()
+    topics = bagio.bag_topics(bag)
     image_topic = next(t for t, ty in topics.items() if ty.endswith('CompressedImage'))
     info_topic = next(t for t, ty in topics.items() if ty.endswith('CameraInfo'))
-    bag_stamps = [s for t, _, s, _ in bagio.read_raw(DEMO_BAG) if t == image_topic]
+    bag_stamps = [s for t, _, s, _ in bagio.read_raw(bag) if t == image_topic]
     nodes = NodeProcess('ekf_vo.ros.run_all', [
         '-p', 'use_sim_time:=true', '-p', 'image_transport:=compressed',
         '-r', f'image/compressed:={image_topic}', '-r', f'camera_info:={info_topic}',
@@ -179,15 +170,14 @@ def test_bag_played_over_dds_with_sim_time(tmp_path):
     nodes.wait_for_output('vo_node ready', 30.0)
     h = Harness(DOMAIN)
     try:
-        odom: list[Odometry] = []
-        h.node.create_subscription(Odometry, '/odom', odom.append, QoSProfile(
+        odom: list[Odometry] = h.record(Odometry, '/odom', QoSProfile(
             depth=100, reliability=ReliabilityPolicy.RELIABLE))
         done = threading.Event()
         stats = {}
 
         def play():
             # half speed: this checks the bag -> node path, not throughput (bench: latency)
-            stats.update(play_bag(h.node, DEMO_BAG, rate=0.5, clock=True,
+            stats.update(play_bag(h.node, bag, rate=0.5, clock=True,
                                   wait_for=[image_topic, info_topic], start_paused_s=0.5))
             done.set()
         threading.Thread(target=play, daemon=True).start()

@@ -1,6 +1,6 @@
 """Two-view bootstrap of the map: essential matrix, relative pose, first triangulation.
 
-Step 1 of the hybrid pipeline (METHOD.md sec. 1): from two frames at the start of the
+Step 1 of the hybrid pipeline (docs/method.md §2.1): from two frames at the start of the
 sequence, estimate the epipolar geometry, recover the relative pose and triangulate the
 first map. Monocular scale is arbitrary: the translation is scaled to
 `bootstrap_baseline_m` (or the `baseline` argument). `from_known_poses` is the paper's

@@ -3,7 +3,7 @@
 The estimator works in *ideal* pixel coordinates: the pixels a distortion-free pinhole
 camera with intrinsics K would see. Feature positions are measured on the raw image and
 undistorted once (`undistort`); the EKF then uses the plain pinhole projection
-u = fx X/Z + cx, v = fy Y/Z + cy (METHOD.md section 1), whose Jacobian is analytic.
+u = fx X/Z + cx, v = fy Y/Z + cy (docs/method.md §4), whose Jacobian is analytic.
 
 Supported models (image_geometry semantics):
 - `plumb_bob` (k1 k2 t1 t2 k3) and `rational_polynomial` (k1 k2 t1 t2 k3 k4 k5 k6):

@@ -1,4 +1,4 @@
-"""Camera optical frame -> robot base frame for odometry output (ROS_NOTES.md conventions).
+"""Camera optical frame -> robot base frame for odometry output (docs/ros.md).
 
 The VO world is the optical frame of the bootstrap camera; odom is the base frame at that
 moment, so with the extrinsic T_base_cam (camera optical frame in the base frame):

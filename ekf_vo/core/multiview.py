@@ -1,6 +1,6 @@
 """Multi-view bootstrap: K keyframes reconstructed together, then bundle adjustment.
 
-`bootstrap: multi_view` (METHOD.md sec. 3, stage 1, after Li et al. 2016, who reconstruct
+`bootstrap: multi_view` (docs/method.md §2.4, after Li et al. 2016, who reconstruct
 30 keyframes in a batch before the filter starts). The default two-view bootstrap
 (bootstrap.py) triangulates the first map from ONE pair, so the map and the filter's
 initial pose carry that pair's errors for as long as its points are seen. Here:

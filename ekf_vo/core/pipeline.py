@@ -1,10 +1,10 @@
 """Per-frame visual odometry pipeline: bootstrap, EKF tracking, map growth, loss handling.
 
-METHOD.md section 1, step by step, per frame:
+docs/method.md §1 and §7, step by step, per frame:
   INITIALISING: keep a reference frame; try the two-view bootstrap against each new frame
                 (essential matrix + triangulation) until one has enough parallax and
                 inliers; the EKF starts at the second frame's pose with the velocity of
-                the pair (METHOD.md sec. 1 step 2).
+                the pair (docs/method.md §3.6).
   TRACKING:     predict (constant velocity, real dt) -> track features with the predicted
                 landmark pixels as the KLT prior -> robust EKF update with the fixed map
                 points (1-point RANSAC) -> triangulate tracks with enough parallax between
@@ -38,7 +38,7 @@ from .triangulation import triangulate_points
 logger = logging.getLogger(__name__)
 
 #: smallest variance (m^2, rad^2) of a published pose: a zero covariance would read as
-#: infinite confidence to robot_localization (ROS_NOTES.md)
+#: infinite confidence to robot_localization (docs/ros.md)
 MIN_VARIANCE = 1e-9
 
 
@@ -98,7 +98,7 @@ class VisualOdometry:
         self.ekf = CameraEKF(camera.K)
         self.map = LandmarkMap(cfg.max_map_points, cfg.cull_after_misses)
         self.rng = np.random.default_rng(seed)
-        # in-filter map refinement (METHOD.md sec. 3); None = the hybrid default
+        # in-filter map refinement (docs/method.md §8); None = the hybrid default
         self.points: PointFilter | None = None
         if cfg.map_refinement == 'filter' and cfg.estimator != 'epnp':
             self.points = PointFilter(cfg, camera.K)
@@ -144,7 +144,7 @@ class VisualOdometry:
         """Process one grey image (uint8 HxW, the camera's size) taken at `stamp_ns`
         (int nanoseconds, increasing): stream.VoStream checks both before calling.
 
-        `known_T_world_cam` is only for the papers' ground-truth bootstrap (METHOD.md:
+        `known_T_world_cam` is only for the papers' ground-truth bootstrap (docs/method.md §2.3:
         "the first two ground-truth poses fix the scale"); the pipeline never reads it
         once tracking."""
         t0 = time.perf_counter()
@@ -226,7 +226,7 @@ class VisualOdometry:
     def _start_tracking(self, res: FrameResult, tracks: Tracks, px: np.ndarray,
                         point_ids: np.ndarray, X_world: np.ndarray, T_world_prev: np.ndarray,
                         T_world_cur: np.ndarray, dt: float, sources: list) -> None:
-        """Start tracking (METHOD.md sec. 1 step 2): the map, the pose of the current
+        """Start tracking (docs/method.md §3.6): the map, the pose of the current
         (last bootstrap) frame, velocities from the difference of the last two bootstrap
         poses `dt` seconds apart. `sources`: earlier bootstrap frames (frame index, ids,
         ideal px, T_world_cam), oldest first, from which tracks without a point become
@@ -408,7 +408,7 @@ class VisualOdometry:
 
     def _refine_points(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
                        X: np.ndarray, T_world_cam: np.ndarray) -> tuple[int, np.ndarray]:
-        """Freeze / drop in-filter points (METHOD.md sec. 3), then fill the free slots with
+        """Freeze / drop in-filter points (docs/method.md §8), then fill the free slots with
         new tracks. Returns (points frozen into the map, mask of tracks that are either
         in the map or in the filter: those are not triangulation candidates)."""
         pts = self.points

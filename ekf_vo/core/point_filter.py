@@ -1,8 +1,8 @@
 """In-filter map refinement: a sliding set of inverse-depth points in the EKF state.
 
-METHOD.md section 3 (Li, Wang, Yang, Sun 2016, "recursive depth" + sliding point set),
+docs/method.md §8 (Li, Wang, Yang, Sun 2016, "recursive depth" + sliding point set),
 with the inverse-depth parametrisation of Civera, Davison & Montiel (IEEE T-RO 2008).
-Enabled by `map_refinement: filter`; the default hybrid filter (METHOD.md sec. 1) keeps
+Enabled by `map_refinement: filter`; the default hybrid filter (docs/method.md §1) keeps
 only the 13 camera states.
 
 Parametrisation (the choice, and why)

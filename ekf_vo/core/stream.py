@@ -6,7 +6,8 @@ demo and the benchmarks — so the rules about inputs are written once:
   distortion or size; camera.PinholeCamera.same_as) restarts it on the next frame;
 - stamps, in arrival order (`admit`): a duplicate, a slightly older stamp (out of order)
   or a jump of more than FUTURE_JUMP_S ahead is rejected; a stamp far behind the last one
-  (TIME_RESET_S: a looping bag, a simulator reset) resets the estimator;
+  (TIME_RESET_S: a looping bag, a simulator reset) resets the estimator when that frame
+  is processed;
 - frames: an image whose size is not the calibration's is rejected; a reset requested
   from outside happens before the next frame.
 Rejections come back as `Rejection(key, text)` and are counted in `counters[key]`, so a
@@ -56,9 +57,12 @@ class VoStream:
         self.vo: VisualOdometry | None = None
         self.counters: collections.Counter = collections.Counter()
         self.n_camera_changes = 0
+        #: resets asked from outside the estimator (request_reset, time going back)
+        self.n_requested_resets = 0
         self._resets_before = 0          # resets of estimators this stream replaced
         self._last_stamp_ns: int | None = None
         self._pending_reset: str | None = None
+        self._reset_at_ns: int | None = None     # stamp of a frame after time went back
 
     # ------------------------------------------------------------------ inputs
     def set_camera(self, info: Mapping[str, Any] | PinholeCamera) -> bool:
@@ -93,8 +97,10 @@ class VoStream:
             if stamp_ns < last:
                 if (last - stamp_ns) * 1e-9 <= TIME_RESET_S:
                     return self._reject('out_of_order', 'out-of-order image stamp: dropped')
+                # the reset belongs to THIS frame, however many frames a caller's queue
+                # still holds from before the jump
                 self.counters['time_resets'] += 1
-                self.request_reset('time went backwards (looping bag or sim reset)')
+                self._reset_at_ns = stamp_ns
             elif (stamp_ns - last) * 1e-9 > FUTURE_JUMP_S:
                 return self._reject('future_stamp',
                                     'image stamp jumps more than 1 h ahead: dropped')
@@ -119,9 +125,14 @@ class VoStream:
             return self._reject('size_mismatch', (
                 f'image {gray.shape[1]}x{gray.shape[0]} does not match the CameraInfo '
                 f'{camera.width}x{camera.height}: dropped'))
+        if self._reset_at_ns is not None and int(stamp_ns) == self._reset_at_ns:
+            self._reset_at_ns = None
+            self.vo.reset('time went backwards (looping bag or sim reset)')
+            self.n_requested_resets += 1
         if self._pending_reset is not None:
             self.vo.reset(self._pending_reset)
             self._pending_reset = None
+            self.n_requested_resets += 1
         return self.vo.process(gray, int(stamp_ns), known_T_world_cam)
 
     # ------------------------------------------------------------------ state

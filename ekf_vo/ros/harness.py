@@ -1,5 +1,6 @@
-"""Drive real rclpy nodes over DDS from a test or a benchmark (no mocks): node processes,
-a driver node with polling, a frame feeder, one DDS domain per test module."""
+"""Drive real rclpy nodes over DDS from a test, a benchmark or the demo (no mocks): node
+processes, a driver node with polling and recording, a frame feeder, and the one DDS
+domain-id scheme (a domain per test module or benchmark)."""
 from __future__ import annotations
 
 import os
@@ -9,7 +10,7 @@ import sys
 import time
 import zlib
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -18,12 +19,22 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
+#: Domain ids handed out by domain_id_for: 1..101. 0 is every robot's default; ids above
+#: 101 use ports in Linux's ephemeral range (ROS 2 docs, "The ROS_DOMAIN_ID").
+DOMAIN_ID_FIRST, DOMAIN_ID_COUNT = 1, 101
 
 
+def domain_id_for(name: str) -> int:
+    """The DDS domain of a test module or benchmark (its module name; only the last dotted
+    part counts): parallel runs of different modules mostly land on different domains.
+    Two names can share one (it is a hash): tests that must not cross-talk with a second
+    run of themselves also use a per-run namespace (test_map_node, test_play)."""
+    return DOMAIN_ID_FIRST + zlib.crc32(name.rpartition('.')[2].encode()) % DOMAIN_ID_COUNT
 
-def domain_id_for(module_name: str, base: int = 100, span: int = 50) -> int:
-    """A DDS domain per test module so parallel runs do not cross-talk (100..149)."""
-    return base + zlib.crc32(module_name.rpartition('.')[2].encode()) % span
+
+def ros_env(domain_id: int) -> dict[str, str]:
+    """The environment of a child process on `domain_id` (unbuffered, so logs are live)."""
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
 
 
 class NodeProcess:
@@ -31,18 +42,17 @@ class NodeProcess:
 
     def __init__(self, module: str, ros_args: list[str], domain_id: int, log: Path) -> None:
         self.log = log
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
         with open(log, 'wb') as out:
             self.proc = subprocess.Popen([sys.executable, '-m', module, '--ros-args',
-                                          *ros_args], env=env, stdout=out,
+                                          *ros_args], env=ros_env(domain_id), stdout=out,
                                          stderr=subprocess.STDOUT)
 
     def output(self) -> str:
         return self.log.read_text(errors='replace')
 
     def wait_for_output(self, text: str, timeout: float = 20.0) -> None:
-        deadline = time.time() + timeout
-        while time.time() < deadline:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
             if text in self.output():
                 return
             if self.proc.poll() is not None:
@@ -65,33 +75,57 @@ class NodeProcess:
 
 
 class Harness:
-    """A test-side node with its own context and executor, and polling helpers."""
+    """A driver node with its own executor: polling, recording topics, calling services.
 
-    def __init__(self, domain_id: int, name: str = 'test_harness') -> None:
-        os.environ['ROS_DOMAIN_ID'] = str(domain_id)
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = Node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
+    Without `context` it initialises its own rclpy context on `domain_id` (and shuts it
+    down on close); with one (e.g. the tests' `context` fixture) it joins it."""
+
+    def __init__(self, domain_id: int | None = None, name: str = 'test_harness', *,
+                 context: Context | None = None, **node_kwargs: Any) -> None:
+        self._owns_context = context is None
+        if context is None:
+            os.environ['ROS_DOMAIN_ID'] = str(domain_id)
+            context = Context()
+            rclpy.init(context=context, domain_id=domain_id)
+        self.context = context
+        self.node = Node(name, context=context, **node_kwargs)
+        self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
 
     def spin_for(self, seconds: float) -> None:
-        deadline = time.time() + seconds
-        while time.time() < deadline:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
             self.executor.spin_once(timeout_sec=0.01)
 
     def spin_until(self, condition: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.time() + timeout
-        while time.time() < deadline:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
             if condition():
                 return True
             self.executor.spin_once(timeout_sec=0.02)
         return condition()
 
+    def record(self, msg_type: type, topic: str, qos: Any) -> list:
+        """A new subscription on `topic`; returns the list its messages are appended to."""
+        received: list = []
+        self.node.create_subscription(msg_type, topic, received.append, qos)
+        return received
+
+    def call(self, srv_type: type, name: str, request: Any = None,
+             timeout: float = 10.0) -> Any:
+        """Call a service once it is available; returns the response."""
+        client = self.node.create_client(srv_type, name)
+        assert self.spin_until(client.service_is_ready, timeout), f'{name} not available'
+        future = client.call_async(request if request is not None else srv_type.Request())
+        assert self.spin_until(future.done, timeout), f'{name} did not answer'
+        return future.result()
+
     def close(self) -> None:
+        self.executor.remove_node(self.node)
         self.executor.shutdown()
         self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
+        if self._owns_context:
+            rclpy.try_shutdown(context=self.context)
 
 
 def encode(gray: np.ndarray, encoding: str) -> np.ndarray:
@@ -119,7 +153,7 @@ class Feeder:
         from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
-        from ekf_vo.ros import conversions as conv
+        from ekf_vo import bridge as conv
         self.conv = conv
         self.h, self.info = h, info
         qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)

@@ -40,8 +40,8 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from ekf_vo.config import ConfigError, MapNodeConfig
-from ekf_vo.ros.conversions import (ConversionError, pointcloud2_to_numpy,
-                                    points_to_pointcloud2, stamp_to_ns)
+from ekf_vo.bridge.common import ConversionError, stamp_to_ns
+from ekf_vo.bridge.pointcloud2 import pointcloud2_to_numpy, points_to_pointcloud2
 from ekf_vo.ros.params import declare_from_dataclass, install_validation
 
 __all__ = ['MapNode', 'main', 'LANDMARKS_QOS', 'MAP_QOS']

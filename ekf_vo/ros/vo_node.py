@@ -31,16 +31,13 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from ..config import ConfigError, NodeConfig, VoConfig
-from ..core.camera import CameraModelError, PinholeCamera
+from ..core.camera import CameraModelError
 from ..core.frames import camera_to_base, optical_to_body_extrinsic, points_to_odom
 from ..core.pipeline import TrackingState, VisualOdometry
-from . import conversions as conv
+from ..core.stream import Rejection, VoStream
+from .. import bridge as conv
 from .params import declare_from_dataclass, install_validation
 
-#: a stamp this far behind the last one means time restarted (looping bag, sim reset)
-TIME_RESET_S = 1.0
-#: stamps further than this ahead of the last one are treated as corrupt
-FUTURE_JUMP_S = 3600.0
 #: each kind of rejected input is logged at most this often (and always counted)
 WARN_PERIOD_S = 5.0
 
@@ -57,14 +54,13 @@ class VoNode(Node):
         self.T_base_cam = optical_to_body_extrinsic(self.node_cfg.T_base_cam_xyz,
                                                     self.node_cfg.T_base_cam_xyzw)
 
-        self._lock = threading.Lock()          # guards camera / vo / counters
+        self._lock = threading.Lock()          # guards the stream's estimator / counters
         self._queue: collections.deque = collections.deque()
         self._queue_cv = threading.Condition()
         self._stop = threading.Event()
-        self.camera: PinholeCamera | None = None
-        self.vo: VisualOdometry | None = None
-        self._reset_requested = False
-        self._last_stamp_ns: int | None = None
+        #: the core's front door: calibration changes, stamp checks, resets (stream.py)
+        self.stream = VoStream(self.core_cfg)
+        self._map_restarted = False            # a new estimator: clear map_node's map
         self._published_ids: set[int] = set()
         self._landmark_subscribers = 0
         self._path = Path()
@@ -81,11 +77,11 @@ class VoNode(Node):
             sub_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
                                  history=HistoryPolicy.KEEP_LAST)
         self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, sub_qos)
+        image_topic = conv.transport_topic('image', self.node_cfg.image_transport)
         if self.node_cfg.image_transport == 'compressed':
-            self.create_subscription(CompressedImage, 'image/compressed',
-                                     self._on_compressed, sub_qos)
+            self.create_subscription(CompressedImage, image_topic, self._on_compressed, sub_qos)
         else:
-            self.create_subscription(Image, 'image', self._on_image, sub_qos)
+            self.create_subscription(Image, image_topic, self._on_image, sub_qos)
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.odom_pub = self.create_publisher(Odometry, 'odom', reliable)
@@ -107,7 +103,8 @@ class VoNode(Node):
     def _on_core_params(self, cfg: VoConfig) -> None:
         with self._lock:
             self.core_cfg = cfg
-            self.vo = None            # rebuilt with the new parameters on the next frame
+            self.stream.set_config(cfg)
+            self._map_restarted = True
         self.get_logger().info('estimator parameters changed: re-initialising')
 
     def _on_node_params(self, cfg: NodeConfig) -> None:
@@ -131,51 +128,56 @@ class VoNode(Node):
         try:
             info = conv.camera_info_to_dict(msg)
             conv.validate_camera_info(info)
-            camera = PinholeCamera.from_camera_info(info)
+            with self._lock:
+                had_camera = self.stream.camera is not None
+                changed = self.stream.set_camera(info)
+                self._map_restarted |= changed
         except (conv.ConversionError, CameraModelError, ValueError) as exc:
             self._warn('bad_camera_info', f'CameraInfo rejected: {exc}')
             return
-        with self._lock:
-            if camera.same_as(self.camera):
-                return
-            if self.camera is not None:
-                self.get_logger().info('CameraInfo changed: re-initialising the estimator')
-            self.camera = camera
-            self.vo = None
+        if changed and had_camera:
+            self.get_logger().info('CameraInfo changed: re-initialising the estimator')
 
     def _on_image(self, msg: Image) -> None:
-        self._enqueue(msg, conv.image_to_gray, 'image')
+        self._enqueue(msg, conv.IMAGE, 'image')
 
     def _on_compressed(self, msg: CompressedImage) -> None:
-        self._enqueue(msg, conv.compressed_to_gray, 'compressed image')
+        self._enqueue(msg, conv.COMPRESSED_IMAGE, 'compressed image')
 
-    def _enqueue(self, msg: Any, decode, what: str) -> None:
+    def _enqueue(self, msg: Any, msgtype: str, what: str) -> None:
         received = time.perf_counter()
         self.counters['received'] += 1
-        if self.camera is None:
+        if self.stream.camera is None:
             self._warn('no_camera_info', f'{what} before any valid CameraInfo: skipped')
             return
         try:
             stamp_ns = conv.stamp_to_ns(msg.header.stamp)
-            gray = decode(msg)
+            gray = conv.decode_image(msgtype, msg, gray=True)
         except conv.ConversionError as exc:
             self._warn('bad_image', f'{what} rejected: {exc}')
             return
         with self._queue_cv:
             # stamps are checked in arrival order, before the queue may drop frames
-            verdict = self._check_stamp(stamp_ns)
-            if verdict is None:
+            with self._lock:
+                time_resets = self.stream.counters['time_resets']
+                rejected = self.stream.admit(stamp_ns)
+            if rejected is not None:
+                self._warn(rejected.key, rejected.text)
                 return
+            if self.stream.counters['time_resets'] != time_resets:
+                self._warn('time_resets', 'time went backwards (looping bag or sim reset): '
+                           'resetting')
             if len(self._queue) >= self.node_cfg.queue_size:
                 self._queue.popleft()
                 self._warn('dropped_behind', 'estimator behind: dropped the oldest frame')
-            self._queue.append((stamp_ns, gray, verdict == 'reset', received))
+            self._queue.append((stamp_ns, gray, received))
             self._queue_cv.notify()
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
         with self._lock:
-            self._reset_requested = True
+            self.counters['reset_requests'] += 1
+            self.stream.request_reset('~/reset called')
         response.success = True
         response.message = 'reset scheduled: the next frame starts a new bootstrap'
         return response
@@ -188,66 +190,30 @@ class VoNode(Node):
                     self._queue_cv.wait(timeout=0.2)
                 if self._stop.is_set():
                     return
-                stamp_ns, gray, time_reset, received = self._queue.popleft()
+                stamp_ns, gray, received = self._queue.popleft()
             try:
-                if time_reset:
-                    with self._lock:
-                        self._reset_estimator('time went backwards')
                 self._process(stamp_ns, gray, received)
             except Exception as exc:  # keep the node alive; say what happened, reset
                 self.counters['internal_errors'] += 1
                 self.get_logger().error(f'estimator error, resetting: {exc!r}',
                                         throttle_duration_sec=5.0)
                 with self._lock:
-                    self.vo = None
-
-    def _check_stamp(self, stamp_ns: int) -> str | None:
-        """Verdict on an image stamp against the last accepted one (arrival order):
-        'ok', 'reset' (time went backwards: looping bag, sim reset) or None (dropped:
-        duplicate, slightly out of order, or a far-future jump)."""
-        last = self._last_stamp_ns
-        verdict = 'ok'
-        if last is not None:
-            if stamp_ns == last:
-                self._warn('duplicate_stamp', 'duplicate image stamp: dropped')
-                return None
-            if stamp_ns < last:
-                if (last - stamp_ns) * 1e-9 <= TIME_RESET_S:
-                    self._warn('out_of_order', 'out-of-order image stamp: dropped')
-                    return None
-                self._warn('time_resets', 'time went backwards (looping bag or sim reset): '
-                           'resetting')
-                verdict = 'reset'
-            elif (stamp_ns - last) * 1e-9 > FUTURE_JUMP_S:
-                self._warn('future_stamp', 'image stamp jumps more than 1 h ahead: dropped')
-                return None
-        self._last_stamp_ns = stamp_ns
-        return verdict
-
-    def _reset_estimator(self, reason: str) -> None:
-        if self.vo is not None:
-            self.vo.reset(reason)
-        self._path.poses.clear()
-        self._publish_removals(list(self._published_ids))
+                    self.stream.restart()
+                    self._map_restarted = True
 
     def _process(self, stamp_ns: int, gray: np.ndarray, received: float) -> None:
         with self._lock:
-            camera, cfg = self.camera, self.core_cfg
-            if self._reset_requested:
-                self._reset_requested = False
-                self.counters['reset_requests'] += 1
-                self._reset_estimator('~/reset called')
-            if self.vo is None and camera is not None:
-                self.vo = VisualOdometry(cfg, camera)
-                self._publish_removals(list(self._published_ids))
-            vo = self.vo
-        if vo is None:
+            n_requested = self.stream.n_requested_resets
+            result = self.stream.process(gray, stamp_ns)
+            vo = self.stream.vo
+            restarted, self._map_restarted = self._map_restarted, False
+        if isinstance(result, Rejection):
+            self._warn(result.key, result.text)
             return
-        if gray.shape != (camera.height, camera.width):
-            self._warn('size_mismatch', f'image {gray.shape[1]}x{gray.shape[0]} does not match '
-                       f'CameraInfo {camera.width}x{camera.height}: dropped')
-            return
-        result = vo.process(gray, stamp_ns)
+        if restarted or self.stream.n_requested_resets != n_requested:
+            # a new map: odometry continues, but map_node and ~/path start again
+            self._path.poses.clear()
+            self._publish_removals(list(self._published_ids))
         self.counters['processed'] += 1
         self._frame_times.append(time.perf_counter())
         if result.ok:
@@ -361,7 +327,7 @@ class VoNode(Node):
                 'latency_p95_ms': round(float(np.percentile(lat, 95)), 2),
                 'tracks': r.n_tracks if r else 0, 'inliers': r.n_inliers if r else 0,
                 'map_points': r.map_size if r else 0,
-                'resets': self.vo.n_resets if self.vo else 0}
+                'resets': self.stream.n_resets}
         vals.update(self.counters)
         return vals
 

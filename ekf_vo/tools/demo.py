@@ -20,54 +20,103 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]
-DEMO_BAG = REPO / 'bags' / 'demo'
-PARAMS = REPO / 'config' / 'ekf_vo.yaml'
+#: the source tree (a checkout or an editable install); bags/ and config/ are here
+SOURCE_ROOT = Path(__file__).resolve().parents[2]
 
 
-def main(argv: list[str] | None = None) -> int:
+def package_file(relative: str) -> Path:
+    """`relative` (e.g. 'bags/demo') in the installed share directory (ament index,
+    share/ekf_vo) when it is there, else in the source tree."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        installed = Path(get_package_share_directory('ekf_vo')) / relative
+    except (ImportError, LookupError, OSError, ValueError):
+        installed = None        # no ament index (plain venv) or the package is not in it
+    if installed is not None and installed.exists():
+        return installed
+    return SOURCE_ROOT / relative
+
+
+def demo_bag() -> Path:
+    """The bundled demo bag (bags/demo)."""
+    return package_file('bags/demo')
+
+
+def load_demo_frames(bag: Path | None = None) -> tuple[dict, list]:
+    """The bag's first CameraInfo (as a dict) and every image, decoded to grey, with its
+    stamp: (info, [(stamp_ns, gray), ...]). Needs no rclpy (message fields only)."""
+    from ..bridge import camera_info_to_dict, decode_image, select_camera_topics, stamp_to_ns
+    from ..io.bag import bag_topics, iter_bag
+    bag = bag or demo_bag()
+    camera = select_camera_topics(bag_topics(bag))
+    info, frames = None, []
+    for topic, msgtype, _, msg in iter_bag(bag, [camera.image, camera.info]):
+        if topic == camera.info:
+            info = camera_info_to_dict(msg) if info is None else info
+        else:
+            frames.append((stamp_to_ns(msg.header.stamp), decode_image(msgtype, msg, gray=True)))
+    return info, frames
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--bag', type=Path, default=DEMO_BAG)
-    parser.add_argument('--params', type=Path, default=PARAMS)
+    parser.add_argument('--bag', type=Path, default=demo_bag())
+    parser.add_argument('--params', type=Path, default=package_file('config/ekf_vo.yaml'))
     parser.add_argument('--out', type=Path, default=Path('out/demo'))
     parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
     parser.add_argument('--domain-id', type=int, default=int(os.environ.get(
         'EKF_VO_DEMO_DOMAIN', '77')), help='private DDS domain for the demo')
-    args = parser.parse_args(argv)
-    # private, localhost-only DDS traffic: the demo must not talk to a robot on the LAN
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    t_start = time.perf_counter()
+    return parser
 
+
+def node_ros_args(bag: Path, params: Path) -> tuple[list[str], str, str]:
+    """The nodes' --ros-args for the bag's image and CameraInfo topics:
+    (ros_args, image_topic, info_topic)."""
+    from ..bridge.topics import select_camera_topics, transport_topic
+    from ..io.bag import bag_topics
+    camera = select_camera_topics(bag_topics(bag))
+    ros_args = ['--params-file', str(params), '-p', 'use_sim_time:=true',
+                '-r', f'camera_info:={camera.info}', '-r', 'odom:=/odom',
+                '-p', f'image_transport:={camera.transport}',
+                '-r', f"{transport_topic('image', camera.transport)}:={camera.image}"]
+    return ros_args, camera.image, camera.info
+
+
+def play_and_record(h, args: argparse.Namespace, topics: tuple[str, str]
+                    ) -> tuple[list, list, dict]:
+    """Play the bag from the harness's node (with /clock) while recording /odom; then get
+    the map as a late subscriber. Returns (odometry, map clouds, play statistics)."""
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import PointCloud2
 
-    from ekf_vo.ros.harness import Harness, NodeProcess
-    from ..config import load_yaml_params, split_params
-    from ..core import geometry as geo
-    from ..core.frames import optical_to_body_extrinsic
-    from ..ros import conversions as conv
-    from . import bagio
-    from .evaluate import evaluate, format_table, plot_result
-    from .play import play_bag
-    from .trajectory_io import write_tum
+    from ..ros.player import play_bag
+    odom = h.record(Odometry, '/odom', QoSProfile(depth=100,
+                                                  reliability=ReliabilityPolicy.RELIABLE))
+    done = threading.Event()
+    stats: dict = {}
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    topics = bagio.bag_topics(args.bag)
-    image_topic = next(t for t, ty in topics.items() if ty.endswith('CompressedImage')
-                       or ty.endswith('/Image'))
-    compressed = topics[image_topic].endswith('CompressedImage')
-    info_topic = next(t for t, ty in topics.items() if ty.endswith('CameraInfo'))
-    ros_args = ['--params-file', str(args.params), '-p', 'use_sim_time:=true',
-                '-r', f'camera_info:={info_topic}', '-r', 'odom:=/odom']
-    if compressed:
-        ros_args += ['-p', 'image_transport:=compressed',
-                     '-r', f'image/compressed:={image_topic}']
-    else:
-        ros_args += ['-r', f'image:={image_topic}']
-    _, node_cfg = split_params(load_yaml_params(args.params))
-    T_base_cam = optical_to_body_extrinsic(node_cfg.T_base_cam_xyz, node_cfg.T_base_cam_xyzw)
+    def play() -> None:
+        stats.update(play_bag(h.node, args.bag, rate=args.rate, clock=True,
+                              wait_for=list(topics), start_paused_s=0.5))
+        done.set()
+    print(f'[demo] playing {args.bag.name} at x{args.rate} with /clock ...')
+    threading.Thread(target=play, daemon=True).start()
+    while not done.is_set():
+        h.executor.spin_once(timeout_sec=0.05)
+    h.spin_for(2.0)          # the last frames' odometry
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    clouds = h.record(PointCloud2, '/map_points', latched)
+    h.spin_until(lambda: clouds, 5.0)
+    return odom, clouds, stats
 
+
+def run_nodes(args: argparse.Namespace) -> tuple[list, list, dict, str]:
+    """vo_node + map_node in their own process, fed the bag over DDS:
+    (odometry, map clouds, play statistics, image topic)."""
+    from ..ros.harness import Harness, NodeProcess
+    ros_args, image_topic, info_topic = node_ros_args(args.bag, args.params)
     print(f'[demo] starting vo_node + map_node (domain {args.domain_id}), bag {args.bag}')
     nodes = NodeProcess('ekf_vo.ros.run_all', ros_args, args.domain_id,
                         args.out / 'nodes.log')
@@ -75,42 +124,70 @@ def main(argv: list[str] | None = None) -> int:
     try:
         nodes.wait_for_output('vo_node ready', timeout=60.0)
         h = Harness(args.domain_id, 'ekf_vo_demo')
-        odom: list = []
-        reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        h.node.create_subscription(Odometry, '/odom', odom.append, reliable)
-        done = threading.Event()
-        stats: dict = {}
-
-        def play() -> None:
-            stats.update(play_bag(h.node, args.bag, rate=args.rate, clock=True,
-                                  wait_for=[image_topic, info_topic], start_paused_s=0.5))
-            done.set()
-        print(f'[demo] playing {args.bag.name} at x{args.rate} with /clock ...')
-        player = threading.Thread(target=play, daemon=True)
-        player.start()
-        while not done.is_set():
-            h.executor.spin_once(timeout_sec=0.05)
-        h.spin_for(2.0)          # the last frames' odometry
-        clouds: list = []
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        h.node.create_subscription(PointCloud2, '/map_points', clouds.append, latched)
-        h.spin_until(lambda: clouds, 5.0)
+        return (*play_and_record(h, args, (image_topic, info_topic)), image_topic)
     finally:
         if h is not None:
             h.close()
         nodes.stop()
 
-    n_frames = stats.get('per_topic', {}).get(image_topic, 0)
-    stamps, poses = [], []
+
+def base_cam_extrinsic(params: Path) -> np.ndarray:
+    """T_base_cam (optical camera frame in the base frame) of the nodes' params file."""
+    from ..config import load_yaml_params, split_params
+    from ..core.frames import optical_to_body_extrinsic
+    _, node_cfg = split_params(load_yaml_params(params))
+    return optical_to_body_extrinsic(node_cfg.T_base_cam_xyz, node_cfg.T_base_cam_xyzw)
+
+
+def camera_trajectory(odom: list, T_base_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Odometry (base frame in odom) back to the camera optical frame: (stamps_s, T)."""
+    from .. import bridge as conv
+    from ..core import geometry as geo
     T_cam_base = geo.invert_T(T_base_cam)
+    stamps, poses = [], []
     for msg in odom:
         T_odom_base, _, _, _ = conv.odometry_to_pose(msg)
         # invert T_odom_base = T_base_cam T_world_cam T_base_cam^-1 (vo_node's output map)
         poses.append(T_cam_base @ T_odom_base @ T_base_cam)
         stamps.append(conv.stamp_to_ns(msg.header.stamp) * 1e-9)
+    return np.array(stamps), np.array(poses) if poses else np.zeros((0, 4, 4))
+
+
+def report(args: argparse.Namespace, result, n_frames: int, n_odom: int, n_map: int,
+           wall: float, est_tum: Path) -> None:
+    """Plot, write summary.json and print the summary table."""
+    from .evaluate import format_table, plot_result
+    plot_result(result, args.out / 'trajectory.png', title='ekf_vo demo: online odometry')
+    summary = result.to_dict()
+    summary.update({'frames_played': n_frames, 'odometry_messages': n_odom,
+                    'map_points_late_subscriber': n_map, 'wall_time_s': wall})
+    (args.out / 'summary.json').write_text(json.dumps(summary, indent=1, default=float))
+    print()
+    print(format_table(result))
+    print(f'{"Odometry messages":<38}{n_odom} for {n_frames} frames played')
+    print(f'{"Map points (late subscriber)":<38}{n_map}')
+    print(f'{"Wall time":<38}{wall:.1f} s')
+    print(f'[demo] wrote {est_tum}, {args.out / "trajectory.png"}, '
+          f'{args.out / "summary.json"}')
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    # private, localhost-only DDS traffic: the demo must not talk to a robot on the LAN
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    t_start = time.perf_counter()
+    from .. import bridge as conv
+    from ..io import bag as bagio
+    from ..io.trajectory import write_tum
+    from .evaluate import evaluate
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    T_base_cam = base_cam_extrinsic(args.params)
+    odom, clouds, stats, image_topic = run_nodes(args)
+    n_frames = stats.get('per_topic', {}).get(image_topic, 0)
+    stamps, poses = camera_trajectory(odom, T_base_cam)
     est_tum = args.out / 'estimate_tum.txt'
-    write_tum(est_tum, np.array(stamps), np.array(poses) if poses else np.zeros((0, 4, 4)))
+    write_tum(est_tum, stamps, poses)
     gt_ns, gt_T = bagio.read_ground_truth(args.bag)
     write_tum(args.out / 'groundtruth_tum.txt', gt_ns * 1e-9, gt_T)
     wall = time.perf_counter() - t_start
@@ -118,21 +195,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f'[demo] FAILED: only {len(stamps)} odometry messages; see '
               f'{args.out / "nodes.log"}')
         return 1
-    result = evaluate(gt_ns * 1e-9, gt_T, np.array(stamps), np.array(poses),
-                      n_frames_total=n_frames)
-    plot_result(result, args.out / 'trajectory.png', title='ekf_vo demo: online odometry')
+    result = evaluate(gt_ns * 1e-9, gt_T, stamps, poses, n_frames_total=n_frames)
     n_map = len(conv.pointcloud2_to_xyz(clouds[-1])) if clouds else 0
-    summary = result.to_dict()
-    summary.update({'frames_played': n_frames, 'odometry_messages': len(stamps),
-                    'map_points_late_subscriber': n_map, 'wall_time_s': wall})
-    (args.out / 'summary.json').write_text(json.dumps(summary, indent=1, default=float))
-    print()
-    print(format_table(result))
-    print(f'{"Odometry messages":<38}{len(stamps)} for {n_frames} frames played')
-    print(f'{"Map points (late subscriber)":<38}{n_map}')
-    print(f'{"Wall time":<38}{wall:.1f} s')
-    print(f'[demo] wrote {est_tum}, {args.out / "trajectory.png"}, '
-          f'{args.out / "summary.json"}')
+    report(args, result, n_frames, len(stamps), n_map, wall, est_tum)
     return 0
 
 

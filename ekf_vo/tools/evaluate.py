@@ -30,7 +30,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from ekf_vo.tools.trajectory_io import GT_TOPIC, is_bag_path, read_trajectory
+from ekf_vo.io.trajectory import GT_TOPIC, check_poses, is_bag_path, read_trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -136,12 +136,10 @@ class EvalResult:
 
 
 def _check_input(name: str, stamps: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
-    T = np.asarray(T, dtype=np.float64)
-    if T.ndim != 3 or T.shape[1:] != (4, 4):
-        raise EvaluationError(f'{name}: poses must have shape (N, 4, 4), got {T.shape}')
-    if T.shape[0] != stamps.shape[0]:
-        raise EvaluationError(f'{name}: {stamps.shape[0]} stamps but {T.shape[0]} poses')
+    try:
+        stamps, T = check_poses(stamps, T)
+    except ValueError as exc:
+        raise EvaluationError(f'{name}: {exc}') from None
     if T.shape[0] == 0:
         raise EvaluationError(f'{name}: trajectory is empty')
     if not (np.all(np.isfinite(stamps)) and np.all(np.isfinite(T))):
@@ -178,8 +176,6 @@ def evaluate(gt_stamps: np.ndarray, gt_T: np.ndarray,
         EvaluationError: malformed or empty input, no / fewer than 3 associated poses,
             all-identical (or otherwise degenerate, e.g. collinear) positions.
     """
-    from evo.core import metrics, sync
-    from evo.core.geometry import GeometryException
     from evo.core.trajectory import PoseTrajectory3D
 
     gt_stamps, gt_T = _check_input('ground truth', gt_stamps, gt_T)
@@ -188,6 +184,55 @@ def evaluate(gt_stamps: np.ndarray, gt_T: np.ndarray,
 
     traj_gt = PoseTrajectory3D(poses_se3=list(gt_T), timestamps=gt_stamps, name='ground truth')
     traj_est = PoseTrajectory3D(poses_se3=list(est_T), timestamps=est_stamps, name='estimate')
+    gt_sync, est_sync = _associate(traj_gt, traj_est, max_time_diff_s)
+    n_matched = gt_sync.num_poses
+    logger.debug('associated %d of %d gt / %d est poses', n_matched, n_gt, n_est)
+    est_sim3, est_se3, (r_a, t_a, s_a) = _align(gt_sync, est_sync)
+    stats = _metrics(gt_sync, est_sync, est_sim3, est_se3)
+
+    # GT arc length over the evaluated interval, at full GT rate (evo's path_length).
+    t0, t1 = float(est_sync.timestamps[0]), float(est_sync.timestamps[-1])
+    in_span = np.flatnonzero((gt_stamps >= t0 - max_time_diff_s)
+                             & (gt_stamps <= t1 + max_time_diff_s))
+    gt_span = copy.deepcopy(traj_gt)
+    gt_span.reduce_to_ids(in_span)
+    path_len = float(gt_span.path_length)
+    ate_rmse = stats['ate_sim3_rmse']
+
+    T_align = np.eye(4)
+    T_align[:3, :3] = s_a * r_a
+    T_align[:3, 3] = t_a
+
+    denom = n_frames_total if n_frames_total is not None else n_gt
+    if denom <= 0:
+        raise EvaluationError(f'n_frames_total must be positive, got {n_frames_total}')
+
+    result = EvalResult(
+        **stats,
+        sim3_scale=float(s_a),
+        path_length_gt_m=path_len,
+        path_length_gt_total_m=float(traj_gt.path_length),
+        ate_sim3_pct_of_path=100.0 * ate_rmse / path_len if path_len > 0 else math.nan,
+        n_gt=int(n_gt),
+        n_est=int(n_est),
+        n_matched=int(n_matched),
+        pct_tracked=100.0 * n_matched / denom,
+        max_time_diff_s=float(max_time_diff_s),
+        T_gt_est_sim3=T_align,
+        times_s=np.asarray(est_sync.timestamps, dtype=np.float64).copy(),
+        gt_xyz=np.asarray(gt_sync.positions_xyz, dtype=np.float64).copy(),
+        est_xyz_aligned=np.asarray(est_sim3.positions_xyz, dtype=np.float64).copy(),
+        gt_xyz_full=np.asarray(traj_gt.positions_xyz, dtype=np.float64).copy(),
+    )
+    logger.info('ATE Sim(3) RMSE %.4f m (%.2f %% of %.2f m), scale %.4f, %d matched',
+                result.ate_sim3_rmse, result.ate_sim3_pct_of_path, path_len, s_a, n_matched)
+    return result
+
+
+def _associate(traj_gt: Any, traj_est: Any, max_time_diff_s: float) -> tuple[Any, Any]:
+    """Associated copies ``(gt_sync, est_sync)`` (evo, nearest stamp within the tolerance);
+    EvaluationError for fewer than :data:`MIN_MATCHED` pairs or identical positions."""
+    from evo.core import sync
 
     try:
         gt_sync, est_sync = sync.associate_trajectories(traj_gt, traj_est,
@@ -199,13 +244,18 @@ def evaluate(gt_stamps: np.ndarray, gt_T: np.ndarray,
         raise EvaluationError(
             f'only {n_matched} associated poses (need >= {MIN_MATCHED}) with max time '
             f'diff {max_time_diff_s} s')
-    logger.debug('associated %d of %d gt / %d est poses', n_matched, n_gt, n_est)
-
     for name, xyz in (('ground truth', gt_sync.positions_xyz),
                       ('estimate', est_sync.positions_xyz)):
         if _spread(xyz) < 1e-9:
             raise EvaluationError(
                 f'{name}: all associated positions are identical; Sim(3) alignment undefined')
+    return gt_sync, est_sync
+
+
+def _align(gt_sync: Any, est_sync: Any) -> tuple[Any, Any, tuple[np.ndarray, np.ndarray, float]]:
+    """``(Sim(3)-aligned copy, SE(3)-aligned copy, (R, t, s) of the Sim(3) alignment)`` of the
+    associated estimate (Umeyama); ``est_sync`` itself stays untouched."""
+    from evo.core.geometry import GeometryException
 
     # evo's align() works in place: align copies, keep est_sync untouched.
     est_sim3 = copy.deepcopy(est_sync)
@@ -217,80 +267,53 @@ def evaluate(gt_stamps: np.ndarray, gt_T: np.ndarray,
         raise EvaluationError(f'degenerate geometry, Umeyama alignment failed: {exc}') from exc
     if not (np.isfinite(s_a) and s_a > 0):
         raise EvaluationError(f'degenerate Sim(3) alignment (scale {s_a})')
+    return est_sim3, est_se3, (r_a, t_a, s_a)
 
-    ape_t = metrics.APE(metrics.PoseRelation.translation_part)
-    ape_t.process_data((gt_sync, est_sim3))
-    ape_r = metrics.APE(metrics.PoseRelation.rotation_angle_deg)
-    ape_r.process_data((gt_sync, est_sim3))
-    ape_t_se3 = metrics.APE(metrics.PoseRelation.translation_part)
-    ape_t_se3.process_data((gt_sync, est_se3))
 
+def _metrics(gt_sync: Any, est_sync: Any, est_sim3: Any, est_se3: Any) -> dict[str, Any]:
+    """The evo APE / RPE statistics and per-pose errors of :class:`EvalResult`."""
+    from evo.core import metrics
+
+    def ape(relation: Any, est: Any) -> Any:
+        metric = metrics.APE(relation)
+        metric.process_data((gt_sync, est))
+        return metric
+
+    def rpe(relation: Any) -> Any:
+        metric = metrics.RPE(relation, delta=1, delta_unit=metrics.Unit.frames,
+                             all_pairs=False)
+        metric.process_data((gt_sync, est_sim3))
+        return metric
+
+    trans, angle = metrics.PoseRelation.translation_part, metrics.PoseRelation.rotation_angle_deg
+    ape_t = ape(trans, est_sim3)
+    ape_r = ape(angle, est_sim3)
+    ape_t_se3 = ape(trans, est_se3)
     # Orientation error relative to the start (evo align_origin): what a robot using the
     # odometry sees. The Sim(3) alignment fits positions only, so on a near-straight path
     # (KITTI) its rotation about the direction of travel is arbitrary and the aligned
     # orientation error above mostly measures that, not the estimator.
     est_origin = copy.deepcopy(est_sync)
     est_origin.align_origin(gt_sync)
-    ape_r0 = metrics.APE(metrics.PoseRelation.rotation_angle_deg)
-    ape_r0.process_data((gt_sync, est_origin))
-
-    rpe_t = metrics.RPE(metrics.PoseRelation.translation_part, delta=1,
-                        delta_unit=metrics.Unit.frames, all_pairs=False)
-    rpe_t.process_data((gt_sync, est_sim3))
-    rpe_r = metrics.RPE(metrics.PoseRelation.rotation_angle_deg, delta=1,
-                        delta_unit=metrics.Unit.frames, all_pairs=False)
-    rpe_r.process_data((gt_sync, est_sim3))
-
+    ape_r0 = ape(angle, est_origin)
+    rpe_t = rpe(trans)
+    rpe_r = rpe(angle)
     stat = metrics.StatisticsType
-    # GT arc length over the evaluated interval, at full GT rate (evo's path_length).
-    t0, t1 = float(est_sync.timestamps[0]), float(est_sync.timestamps[-1])
-    in_span = np.flatnonzero((gt_stamps >= t0 - max_time_diff_s)
-                             & (gt_stamps <= t1 + max_time_diff_s))
-    gt_span = copy.deepcopy(traj_gt)
-    gt_span.reduce_to_ids(in_span)
-    path_len = float(gt_span.path_length)
-    ate_rmse = float(ape_t.get_statistic(stat.rmse))
-
-    T_align = np.eye(4)
-    T_align[:3, :3] = s_a * r_a
-    T_align[:3, 3] = t_a
-
-    denom = n_frames_total if n_frames_total is not None else n_gt
-    if denom <= 0:
-        raise EvaluationError(f'n_frames_total must be positive, got {n_frames_total}')
-
-    result = EvalResult(
-        ate_sim3_rmse=ate_rmse,
-        ate_sim3_mean=float(ape_t.get_statistic(stat.mean)),
-        ate_sim3_median=float(ape_t.get_statistic(stat.median)),
-        ate_sim3_max=float(ape_t.get_statistic(stat.max)),
-        ate_se3_rmse=float(ape_t_se3.get_statistic(stat.rmse)),
-        sim3_scale=float(s_a),
-        rpe_trans_rmse=float(rpe_t.get_statistic(stat.rmse)),
-        rpe_rot_rmse_deg=float(rpe_r.get_statistic(stat.rmse)),
-        rot_err_mean_deg=float(ape_r.get_statistic(stat.mean)),
-        rot_err_max_deg=float(ape_r.get_statistic(stat.max)),
-        rot_err_origin_mean_deg=float(ape_r0.get_statistic(stat.mean)),
-        rot_err_origin_max_deg=float(ape_r0.get_statistic(stat.max)),
-        path_length_gt_m=path_len,
-        path_length_gt_total_m=float(traj_gt.path_length),
-        ate_sim3_pct_of_path=100.0 * ate_rmse / path_len if path_len > 0 else math.nan,
-        n_gt=int(n_gt),
-        n_est=int(n_est),
-        n_matched=int(n_matched),
-        pct_tracked=100.0 * n_matched / denom,
-        max_time_diff_s=float(max_time_diff_s),
-        T_gt_est_sim3=T_align,
-        times_s=np.asarray(est_sync.timestamps, dtype=np.float64).copy(),
-        trans_err_m=np.asarray(ape_t.error, dtype=np.float64).copy(),
-        rot_err_deg=np.asarray(ape_r.error, dtype=np.float64).copy(),
-        gt_xyz=np.asarray(gt_sync.positions_xyz, dtype=np.float64).copy(),
-        est_xyz_aligned=np.asarray(est_sim3.positions_xyz, dtype=np.float64).copy(),
-        gt_xyz_full=np.asarray(traj_gt.positions_xyz, dtype=np.float64).copy(),
-    )
-    logger.info('ATE Sim(3) RMSE %.4f m (%.2f %% of %.2f m), scale %.4f, %d matched',
-                result.ate_sim3_rmse, result.ate_sim3_pct_of_path, path_len, s_a, n_matched)
-    return result
+    return {
+        'ate_sim3_rmse': float(ape_t.get_statistic(stat.rmse)),
+        'ate_sim3_mean': float(ape_t.get_statistic(stat.mean)),
+        'ate_sim3_median': float(ape_t.get_statistic(stat.median)),
+        'ate_sim3_max': float(ape_t.get_statistic(stat.max)),
+        'ate_se3_rmse': float(ape_t_se3.get_statistic(stat.rmse)),
+        'rpe_trans_rmse': float(rpe_t.get_statistic(stat.rmse)),
+        'rpe_rot_rmse_deg': float(rpe_r.get_statistic(stat.rmse)),
+        'rot_err_mean_deg': float(ape_r.get_statistic(stat.mean)),
+        'rot_err_max_deg': float(ape_r.get_statistic(stat.max)),
+        'rot_err_origin_mean_deg': float(ape_r0.get_statistic(stat.mean)),
+        'rot_err_origin_max_deg': float(ape_r0.get_statistic(stat.max)),
+        'trans_err_m': np.asarray(ape_t.error, dtype=np.float64).copy(),
+        'rot_err_deg': np.asarray(ape_r.error, dtype=np.float64).copy(),
+    }
 
 
 def format_table(r: EvalResult) -> str:

@@ -8,14 +8,15 @@ Console script::
 
 What it does, per image message of the bag (in log-time order):
 
-1. topics: the image topic is the first ``sensor_msgs/msg/Image`` topic of the bag, else the
-   first ``CompressedImage`` topic; the CameraInfo topic is the one in the image topic's
-   namespace (``/cam/image_raw[/compressed]`` -> ``/cam/camera_info``), else the first
-   CameraInfo topic; ground truth is ``/ground_truth/pose`` when present. All overridable.
+1. topics: :func:`ekf_vo.bridge.topics.select_camera_topics` (the first
+   ``sensor_msgs/msg/Image`` topic of the bag, else the first ``CompressedImage`` topic; the
+   CameraInfo topic in the image topic's namespace, ``/cam/image_raw[/compressed]`` ->
+   ``/cam/camera_info``, else the first CameraInfo topic); ground truth is
+   ``/ground_truth/pose`` when present. All overridable.
 2. parameters: the core (:class:`ekf_vo.config.VoConfig`) fields of the ``vo_node:
    ros__parameters:`` section of ``--params`` (node-only fields such as ``odom_frame`` are
    accepted and ignored), then ``--set name=value`` overrides, typed by the field type.
-3. images are decoded to grey with :mod:`ekf_vo.ros.conversions` (the same code as vo_node);
+3. images are decoded to grey with :func:`ekf_vo.bridge.image.decode_image` (as in vo_node);
    the stamp is the header stamp. Images before the first valid CameraInfo are skipped; a
    CameraInfo that changes the calibration re-creates the :class:`VisualOdometry` (its new
    trajectory starts at the identity again, as a restarted node would).
@@ -54,14 +55,14 @@ from typing import Any
 
 import numpy as np
 
+from ..bridge.topics import TopicError, select_camera_topics, topic_listing
 from ..config import ConfigError, NodeConfig, VoConfig, load_yaml_params, split_params
+from ..core.pipeline import TrackingState
+from ..core.stream import VoStream
+from ..io.bag import topic_counts as _topic_counts
+from ..io.trajectory import GT_TOPIC
 
 logger = logging.getLogger(__name__)
-
-IMAGE = 'sensor_msgs/msg/Image'
-COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
-CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
-GT_TOPIC = '/ground_truth/pose'
 
 #: per-frame CSV columns before the per-stage timings (``ms_<stage>``) and the message
 STATS_COLUMNS = ('stamp_ns', 'stamp_s', 'state', 'ok', 'n_tracks', 'n_matches', 'n_inliers',
@@ -250,17 +251,6 @@ def make_config(params: str | Path | Mapping[str, Any] | VoConfig | None = None,
 
 
 # ============================================================================ topics
-def _topic_counts(bag: Path) -> dict[str, tuple[str, int]]:
-    """topic -> (message type, message count) of a bag."""
-    from rosbags.rosbag2 import Reader
-    out: dict[str, tuple[str, int]] = {}
-    with Reader(bag) as reader:
-        for c in reader.connections:
-            typ, n = out.get(c.topic, (c.msgtype, 0))
-            out[c.topic] = (typ, n + int(c.msgcount))
-    return out
-
-
 def select_topics(topics: Mapping[str, str], image_topic: str | None = None,
                   info_topic: str | None = None, gt_topic: str | None = None
                   ) -> tuple[str, str, str | None]:
@@ -270,31 +260,16 @@ def select_topics(topics: Mapping[str, str], image_topic: str | None = None,
     Raises:
         RunError: no (or a wrongly typed) image or CameraInfo topic, missing --gt-topic.
     """
-    listing = ', '.join(f'{t} [{m}]' for t, m in topics.items()) or 'none'
-    if image_topic is None:
-        raw = [t for t, m in topics.items() if m == IMAGE]
-        comp = [t for t, m in topics.items() if m == COMPRESSED_IMAGE]
-        if not raw and not comp:
-            raise RunError(f'no {IMAGE} or {COMPRESSED_IMAGE} topic in the bag (topics: '
-                           f'{listing})')
-        image_topic = (raw or comp)[0]
-    elif topics.get(image_topic) not in (IMAGE, COMPRESSED_IMAGE):
-        raise RunError(f'--image-topic {image_topic}: not an Image/CompressedImage topic of '
-                       f'the bag (topics: {listing})')
-    if info_topic is None:
-        infos = [t for t, m in topics.items() if m == CAMERA_INFO]
-        if not infos:
-            raise RunError(f'no {CAMERA_INFO} topic in the bag (topics: {listing})')
-        base = image_topic.removesuffix('/compressed').rsplit('/', 1)[0]
-        info_topic = next((t for t in infos if t == f'{base}/camera_info'), infos[0])
-    elif topics.get(info_topic) != CAMERA_INFO:
-        raise RunError(f'--info-topic {info_topic}: not a CameraInfo topic of the bag '
-                       f'(topics: {listing})')
+    try:
+        camera = select_camera_topics(topics, image_topic, info_topic)
+    except TopicError as exc:
+        raise RunError(str(exc)) from None
     if gt_topic is None:
         gt_topic = GT_TOPIC if GT_TOPIC in topics else None
     elif gt_topic not in topics:
-        raise RunError(f'--gt-topic {gt_topic}: not in the bag (topics: {listing})')
-    return image_topic, info_topic, gt_topic
+        raise RunError(f'--gt-topic {gt_topic}: not in the bag '
+                       f'(topics: {topic_listing(topics)})')
+    return camera.image, camera.info, gt_topic
 
 
 # ============================================================================ run
@@ -338,11 +313,7 @@ def run_bag(bag: str | Path,
         RunError: missing bag or topics, ``gt_bootstrap`` without ground truth.
         ConfigError: bad parameters.
     """
-    from ..core.camera import CameraModelError, PinholeCamera
-    from ..core.pipeline import TrackingState, VisualOdometry
-    from ..ros.conversions import (ConversionError, camera_info_to_dict, compressed_to_gray,
-                                   image_to_gray, stamp_to_ns, validate_camera_info)
-    from .bagio import iter_bag, read_ground_truth
+    from ..io.bag import read_ground_truth
 
     bag = Path(bag)
     if not bag.exists():
@@ -354,14 +325,12 @@ def run_bag(bag: str | Path,
         raise RunError(f'cannot open bag {bag}: {exc}') from exc
     image_topic, info_topic, gt_topic = select_topics(
         {t: m for t, (m, _) in counts.items()}, image_topic, info_topic, gt_topic)
-    image_type = counts[image_topic][0]
     if gt_bootstrap and gt_topic is None:
         raise RunError('--gt-bootstrap needs ground truth: the bag has no '
                        f'{GT_TOPIC} (give --gt-topic)')
     gt_ns, gt_T = np.zeros(0, np.int64), np.zeros((0, 4, 4))
     if gt_topic is not None:
         gt_ns, gt_T = read_ground_truth(bag, gt_topic)
-    tol_ns = int(round(max_time_diff_s * 1e9))
 
     summary = RunSummary(str(bag), image_topic, info_topic, gt_topic, cfg,
                          gt_bootstrap=gt_bootstrap)
@@ -371,73 +340,100 @@ def run_bag(bag: str | Path,
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=total, unit='frame', desc=f'ekf-vo-run {bag.name}', file=sys.stderr)
+    known_poses = (gt_ns, gt_T, int(round(max_time_diff_s * 1e9))) if gt_bootstrap else None
+    try:
+        stream, stamps_s, poses = _feed_stream(bag, cfg, seed, summary, limit, bar,
+                                               known_poses)
+    finally:
+        if bar is not None:
+            bar.close()
+    if summary.frames == 0:
+        why = ('no CameraInfo before/among the images' if stream.camera is None
+               else 'no decodable image')
+        raise RunError(f'{bag}: no image was processed ({why}; image topic {image_topic} '
+                       f'[{counts[image_topic][0]}], CameraInfo topic {info_topic})')
+    _summarise(summary, stamps_s, poses)
+    if out_tum is not None:
+        from ..io.trajectory import write_tum
+        write_tum(out_tum, summary.est_stamps_s, summary.est_T_world_cam)
+    if stats_csv is not None:
+        write_stats_csv(stats_csv, summary.frame_stats)
+    if gt_topic is not None:
+        _evaluate_into(summary, gt_ns, gt_T, max_time_diff_s)
+    return summary
 
-    vo: VisualOdometry | None = None
-    camera: PinholeCamera | None = None
+
+def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
+                 limit: int | None, bar, known_poses
+                 ) -> tuple[VoStream, list[float], list[np.ndarray]]:
+    """Every image and CameraInfo of the bag, in log order, through the core's front
+    door (core.stream.VoStream); fills the counters and per-frame rows of `summary`.
+    `known_poses`: (gt stamps ns, gt poses, tolerance ns) for the ground-truth
+    bootstrap, or None. Returns the stream and the (stamp s, T_world_cam) of ok frames."""
+    from ..bridge import (ConversionError, camera_info_to_dict, stamp_to_ns,
+                          validate_camera_info)
+    from ..bridge.image import decode_image
+    from ..core.camera import CameraModelError
+    from ..core.stream import Rejection
+    from ..io.bag import iter_bag
+
+    stream = VoStream(cfg, seed=seed)
     stamps_s: list[float] = []
     poses: list[np.ndarray] = []
     warned_info = False
     t0 = time.perf_counter()
-    try:
-        for topic, msgtype, log_ns, msg in iter_bag(bag, [image_topic, info_topic]):
-            if topic == info_topic:
-                try:
-                    info = camera_info_to_dict(msg)
-                    validate_camera_info(info)
-                    new_cam = PinholeCamera.from_camera_info(info)
-                except (ConversionError, CameraModelError) as exc:
-                    if not warned_info:
-                        logger.warning('unusable CameraInfo on %s: %s', info_topic, exc)
-                        warned_info = True
-                    continue
-                if not new_cam.same_as(camera):
-                    if vo is not None:
-                        summary.n_resets += vo.n_resets
-                        summary.n_camera_changes += 1
-                        logger.warning('calibration changed at %d ns: restarting the VO',
-                                       log_ns)
-                    camera = new_cam
-                    vo = VisualOdometry(cfg, camera, seed=seed)
-                continue
-            if limit is not None and summary.frames >= limit:
-                break
-            if bar is not None:
-                bar.update(1)
-            if vo is None:
-                summary.frames_skipped += 1
-                continue
+    for topic, msgtype, log_ns, msg in iter_bag(bag, [summary.image_topic,
+                                                      summary.info_topic]):
+        if topic == summary.info_topic:
             try:
-                gray = (compressed_to_gray(msg) if msgtype == COMPRESSED_IMAGE
-                        else image_to_gray(msg))
-                stamp_ns = stamp_to_ns(msg.header.stamp)
-            except ConversionError as exc:
-                logger.warning('skipping image at %d ns: %s', log_ns, exc)
-                summary.frames_skipped += 1
-                continue
-            known = None
-            if gt_bootstrap and vo.state == TrackingState.INITIALISING:
-                known = _pose_at(gt_ns, gt_T, stamp_ns, tol_ns)
-            res = vo.process(gray, stamp_ns, known_T_world_cam=known)
-            summary.frames += 1
-            summary.frame_stats.append(FrameStats(
-                stamp_ns, res.state.value, bool(res.ok), int(res.n_tracks),
-                int(res.n_matches), int(res.n_inliers), int(res.n_new_points),
-                int(res.map_size), dict(res.timings_ms), res.message))
-            if res.ok and res.T_world_cam is not None:
-                stamps_s.append(stamp_ns * 1e-9)
-                poses.append(np.asarray(res.T_world_cam, dtype=np.float64))
-    finally:
+                info = camera_info_to_dict(msg)
+                validate_camera_info(info)
+                if stream.set_camera(info) and stream.n_camera_changes:
+                    logger.warning('calibration changed at %d ns: restarting the VO', log_ns)
+            except (ConversionError, CameraModelError, ValueError) as exc:
+                if not warned_info:
+                    logger.warning('unusable CameraInfo on %s: %s', topic, exc)
+                    warned_info = True
+            continue
+        if limit is not None and summary.frames >= limit:
+            break
         if bar is not None:
-            bar.close()
+            bar.update(1)
+        if stream.camera is None:
+            summary.frames_skipped += 1
+            continue
+        try:
+            gray = decode_image(msgtype, msg, gray=True)
+            stamp_ns = stamp_to_ns(msg.header.stamp)
+        except ConversionError as exc:
+            logger.warning('skipping image at %d ns: %s', log_ns, exc)
+            summary.frames_skipped += 1
+            continue
+        known = None
+        if known_poses is not None and stream.state == TrackingState.INITIALISING:
+            known = _pose_at(*known_poses[:2], stamp_ns, known_poses[2])
+        res = stream.admit(stamp_ns) or stream.process(gray, stamp_ns, known)
+        if isinstance(res, Rejection):
+            logger.warning('skipping image at %d ns: %s', log_ns, res.text)
+            summary.frames_skipped += 1
+            continue
+        summary.frames += 1
+        summary.frame_stats.append(FrameStats(
+            stamp_ns, res.state.value, bool(res.ok), int(res.n_tracks),
+            int(res.n_matches), int(res.n_inliers), int(res.n_new_points),
+            int(res.map_size), dict(res.timings_ms), res.message))
+        if res.ok and res.T_world_cam is not None:
+            stamps_s.append(stamp_ns * 1e-9)
+            poses.append(np.asarray(res.T_world_cam, dtype=np.float64))
     summary.wall_s = time.perf_counter() - t0
-    if vo is not None:
-        summary.n_resets += vo.n_resets
-    if summary.frames == 0:
-        why = ('no CameraInfo before/among the images' if camera is None
-               else 'no decodable image')
-        raise RunError(f'{bag}: no image was processed ({why}; image topic {image_topic} '
-                       f'[{image_type}], CameraInfo topic {info_topic})')
+    summary.n_resets = stream.n_resets
+    summary.n_camera_changes = stream.n_camera_changes
+    return stream, stamps_s, poses
 
+
+def _summarise(summary: RunSummary, stamps_s: list[float], poses: list[np.ndarray]
+               ) -> None:
+    """Tracked %, frames/s, mean stage times and the trajectory into `summary`."""
     summary.frames_ok = len(poses)
     summary.pct_tracked = 100.0 * summary.frames_ok / summary.frames
     summary.fps = summary.frames / max(summary.wall_s, 1e-9)
@@ -450,15 +446,6 @@ def run_bag(bag: str | Path,
     summary.core_fps = summary.frames / core_s if core_s > 0 else math.nan
     summary.est_stamps_s = np.asarray(stamps_s, dtype=np.float64)
     summary.est_T_world_cam = (np.stack(poses) if poses else np.zeros((0, 4, 4)))
-
-    if out_tum is not None:
-        from .trajectory_io import write_tum
-        write_tum(out_tum, summary.est_stamps_s, summary.est_T_world_cam)
-    if stats_csv is not None:
-        write_stats_csv(stats_csv, summary.frame_stats)
-    if gt_topic is not None:
-        _evaluate_into(summary, gt_ns, gt_T, max_time_diff_s)
-    return summary
 
 
 def _evaluate_into(summary: RunSummary, gt_ns: np.ndarray, gt_T: np.ndarray,

@@ -121,6 +121,17 @@ def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(stamps, dtype=np.float64), T
 
 
+def check_poses(stamps_s: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(stamps (N,), T (N, 4, 4))`` as float64 arrays; ValueError if the shapes do not fit."""
+    stamps = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ValueError(f'poses must have shape (N, 4, 4), got {T.shape}')
+    if T.shape[0] != stamps.shape[0]:
+        raise ValueError(f'{stamps.shape[0]} stamps but {T.shape[0]} poses')
+    return stamps, T
+
+
 def write_tum(path: PathLike, stamps_s: np.ndarray, T_world_cam: np.ndarray) -> None:
     """Write a TUM trajectory file (with a ``#`` header line).
 
@@ -135,12 +146,7 @@ def write_tum(path: PathLike, stamps_s: np.ndarray, T_world_cam: np.ndarray) -> 
     Raises:
         ValueError: shapes do not match.
     """
-    stamps = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
-    T = np.asarray(T_world_cam, dtype=np.float64)
-    if T.ndim != 3 or T.shape[1:] != (4, 4):
-        raise ValueError(f'T_world_cam must have shape (N, 4, 4), got {T.shape}')
-    if T.shape[0] != stamps.shape[0]:
-        raise ValueError(f'{stamps.shape[0]} stamps but {T.shape[0]} poses')
+    stamps, T = check_poses(stamps_s, T_world_cam)
     t_xyz, q_xyzw = tum_rows_from_poses(T)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -159,7 +165,7 @@ def is_bag_path(path: PathLike) -> bool:
 
 
 def read_gt_from_bag(path: PathLike, topic: str = GT_TOPIC) -> tuple[np.ndarray, np.ndarray]:
-    """Read a ground-truth trajectory from a rosbag2 bag (via bagio.read_ground_truth).
+    """Read a ground-truth trajectory from a rosbag2 bag (via :func:`.bag.read_ground_truth`).
 
     The topic should carry ``geometry_msgs/msg/PoseStamped`` whose pose is ``T_world_cam``
     (``PoseWithCovarianceStamped``, ``nav_msgs/msg/Odometry`` and ``TransformStamped`` are
@@ -177,7 +183,7 @@ def read_gt_from_bag(path: PathLike, topic: str = GT_TOPIC) -> tuple[np.ndarray,
         FileNotFoundError: missing bag.
         ValueError: topic absent, of an unsupported type, or without messages.
     """
-    from .bagio import bag_topics, read_ground_truth
+    from .bag import bag_topics, read_ground_truth
 
     topics = bag_topics(path)
     if topic not in topics:

@@ -1,4 +1,4 @@
-"""Reader of the image-folder layout of ../shared/data (camera.json, groundtruth_tum.txt).
+"""Reader of the image-folder dataset layout (camera.json, images, groundtruth_tum.txt).
 
 Layout: `camera.json` (fx fy cx cy, dist, width, height), `groundtruth_tum.txt`
 (T_world_cam of the camera optical frame), the images, and their times in `times.txt`
@@ -16,7 +16,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from .trajectory_io import read_tum
+from .trajectory import read_tum
 
 logger = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Replay a rosbag2 over DDS without ros2cli: ``ekf-vo-play BAG``.
 
 A small stand-in for ``ros2 bag play --clock``: messages are read with rosbags
-(:func:`ekf_vo.tools.bagio.read_raw`) and published as the recorded CDR bytes (rclpy's
+(:func:`ekf_vo.io.bag.read_raw`) and published as the recorded CDR bytes (rclpy's
 ``Publisher.publish`` accepts serialized ``bytes``; nothing is deserialized), paced by the
 recorded log times divided by ``rate``. Before each message, ``/clock``
 (rosgraph_msgs/Clock) is set to its log time, so nodes with ``use_sim_time`` follow the bag.
@@ -22,10 +22,11 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from ekf_vo.tools import bagio
+from ..io.bag import bag_topics, read_raw
 
 logger = logging.getLogger(__name__)
 
@@ -144,14 +145,64 @@ def play_bag(node: Any, path: str | Path, rate: float = 1.0, topics: Iterable[st
     if not rate > 0:
         raise PlayError(f'rate must be > 0, got {rate}')
     remap = {_absolute(k): _absolute(v) for k, v in (remap or {}).items()}
-    bag_types = bagio.bag_topics(path)
+    publishers, skipped = _create_publishers(node, path, topics, remap, _qos(qos))
+    clock_pub = _clock_publisher(node, remap) if clock else None
+    all_pubs = [*publishers.values(), *([clock_pub] if clock_pub is not None else [])]
+    progress = _Progress()
+    unmatched: list[str] = []
+    wall_start: float | None = None
+    wall_s = 0.0
+    pause_start = time.monotonic()
+    try:
+        unmatched, progress.stopped = _wait_for_subscribers(publishers, wait_for,
+                                                            wait_timeout_s, stop_event)
+        # Also after a match: the writer may know the reader before the reader knows the
+        # writer, and a volatile reader drops samples from writers it has not matched yet.
+        if not progress.stopped and start_paused_s > 0 and \
+                not _sleep_until(time.monotonic() + start_paused_s, stop_event):
+            progress.stopped = True
+        wall_start = time.monotonic()
+        while not progress.stopped:
+            played = _play_once(path, publishers, clock_pub, rate, stop_event, progress)
+            if not loop or not played:
+                break
+        wall_s = time.monotonic() - wall_start
+        if ack_timeout_s > 0 and progress.messages and not progress.stopped:
+            _wait_acked(all_pubs, ack_timeout_s)
+    finally:
+        for pub in all_pubs:
+            node.destroy_publisher(pub)
+    bag_s = progress.bag_ns / _NS_PER_S
+    return {'messages': progress.messages, 'per_topic': progress.per_topic,
+            'loops': progress.loops, 'bag_duration_s': bag_s, 'wall_s': wall_s,
+            'effective_rate': bag_s / wall_s if wall_s > 0 else float('nan'),
+            'stopped': progress.stopped, 'skipped_types': skipped,
+            'waited_s': (wall_start if wall_start is not None else time.monotonic())
+            - pause_start, 'unmatched': unmatched}
+
+
+@dataclass
+class _Progress:
+    """What :func:`play_bag` has played so far."""
+
+    per_topic: dict[str, int] = field(default_factory=dict)   #: published topic -> messages
+    messages: int = 0
+    loops: int = 0
+    bag_ns: int = 0        #: log-time span played, summed over loops
+    stopped: bool = False  #: stop_event ended the playback
+
+
+def _create_publishers(node: Any, path: Path, topics: Iterable[str] | None,
+                       remap: Mapping[str, str], qos_profile: Any
+                       ) -> tuple[dict[str, Any], dict[str, str]]:
+    """``({bag topic: publisher}, {bag topic: type not importable})`` of the played topics."""
+    bag_types = bag_topics(path)
     if topics is not None:
         wanted = {_absolute(t) for t in topics}
         unknown = wanted - {_absolute(t) for t in bag_types}
         if unknown:
             logger.warning('topics not in the bag: %s', sorted(unknown))
         bag_types = {t: ty for t, ty in bag_types.items() if _absolute(t) in wanted}
-    qos_profile = _qos(qos)
     publishers: dict[str, Any] = {}
     skipped: dict[str, str] = {}
     for topic, msgtype in sorted(bag_types.items()):
@@ -164,100 +215,83 @@ def play_bag(node: Any, path: str | Path, rate: float = 1.0, topics: Iterable[st
         out_topic = remap.get(_absolute(topic), _absolute(topic))
         publishers[topic] = node.create_publisher(cls, out_topic, qos_profile)
     if not publishers:
-        raise PlayError(f'{path}: no playable topic (bag has {sorted(bagio.bag_topics(path))})')
-    clock_pub = None
-    clock_cls = None
-    if clock:
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from rosgraph_msgs.msg import Clock
-        clock_cls = Clock
-        clock_pub = node.create_publisher(
-            Clock, remap.get('/clock', '/clock'),
-            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        raise PlayError(f'{path}: no playable topic (bag has {sorted(bag_topics(path))})')
+    return publishers, skipped
+
+
+def _clock_publisher(node: Any, remap: Mapping[str, str]) -> Any:
+    """Publisher of rosgraph_msgs/Clock on ``/clock`` (or its remapped name)."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    return node.create_publisher(Clock, remap.get('/clock', '/clock'),
+                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+
+
+def _wait_for_subscribers(publishers: Mapping[str, Any], wait_for: Iterable[str] | None,
+                          timeout_s: float, stop_event: threading.Event | None
+                          ) -> tuple[list[str], bool]:
+    """Wait until each ``wait_for`` topic has a subscriber: ``(unmatched topics, stopped)``."""
+    by_name = {pub.topic_name: pub for pub in publishers.values()}
+    if wait_for is None:
+        return [], False
+    names = list(wait_for)
+    waited = sorted(by_name) if '*' in names else [_absolute(t) for t in names]
+    missing = [t for t in waited if t not in by_name]
+    if missing:
+        raise PlayError(f'wait_for topics {missing} are not played (playing {sorted(by_name)})')
+    unmatched: list[str] = []
+    if not waited:
+        return unmatched, False
+    deadline = time.monotonic() + timeout_s
+    while True:
+        unmatched = [t for t in waited if by_name[t].get_subscription_count() == 0]
+        if not unmatched or time.monotonic() >= deadline:
+            break
+        if not _sleep_until(time.monotonic() + 0.02, stop_event):
+            return unmatched, True
+    if unmatched:
+        logger.warning('no subscriber on %s after %.1f s; playing anyway', unmatched, timeout_s)
+    return unmatched, False
+
+
+def _play_once(path: Path, publishers: Mapping[str, Any], clock_pub: Any, rate: float,
+               stop_event: threading.Event | None, progress: _Progress) -> bool:
+    """Publish the bag once from its start, paced by log time / ``rate``, updating
+    ``progress``; False if the bag had no message to play."""
     from builtin_interfaces.msg import Time
 
-    per_topic: dict[str, int] = {}
-    messages = 0
-    loops = 0
-    bag_ns = 0
-    stopped = False
-    wall_start: float | None = None
-    wall_s = 0.0
-    unmatched: list[str] = []
-    pause_start = time.monotonic()
-    try:
-        by_name = {pub.topic_name: pub for pub in publishers.values()}
-        waited: list[str] = []
-        if wait_for is not None:
-            names = list(wait_for)
-            waited = sorted(by_name) if '*' in names else [_absolute(t) for t in names]
-            missing = [t for t in waited if t not in by_name]
-            if missing:
-                raise PlayError(
-                    f'wait_for topics {missing} are not played (playing {sorted(by_name)})')
-        if waited and not stopped:
-            deadline = time.monotonic() + wait_timeout_s
-            while True:
-                unmatched = [t for t in waited if by_name[t].get_subscription_count() == 0]
-                if not unmatched or time.monotonic() >= deadline:
-                    break
-                if not _sleep_until(time.monotonic() + 0.02, stop_event):
-                    stopped = True
-                    break
-            if unmatched and not stopped:
-                logger.warning('no subscriber on %s after %.1f s; playing anyway',
-                               unmatched, wait_timeout_s)
-        # Also after a match: the writer may know the reader before the reader knows the
-        # writer, and a volatile reader drops samples from writers it has not matched yet.
-        if not stopped and start_paused_s > 0 and \
-                not _sleep_until(time.monotonic() + start_paused_s, stop_event):
-            stopped = True
-        wall_start = time.monotonic()
-        while not stopped:
-            loops += 1
-            first_ns = last_ns = None
-            loop_start = time.monotonic()
-            for topic, _, stamp_ns, raw in bagio.read_raw(path, list(publishers)):
-                if first_ns is None:
-                    first_ns = stamp_ns
-                # Log times are sorted; max() guards against equal or odd stamps.
-                deadline = loop_start + max(stamp_ns - first_ns, 0) / _NS_PER_S / rate
-                if not _sleep_until(deadline, stop_event):
-                    stopped = True
-                    break
-                if clock_pub is not None:
-                    sec, nanosec = divmod(stamp_ns, _NS_PER_S)
-                    clock_pub.publish(clock_cls(clock=Time(sec=sec, nanosec=nanosec)))
-                publishers[topic].publish(raw)
-                name = publishers[topic].topic_name
-                per_topic[name] = per_topic.get(name, 0) + 1
-                messages += 1
-                last_ns = stamp_ns
-            if first_ns is not None and last_ns is not None:
-                bag_ns += last_ns - first_ns
-            if not loop or first_ns is None:
-                break
-        wall_s = time.monotonic() - wall_start
-        # Like `ros2 bag play --wait-for-all-acked`: a reliable sample still in flight (or
-        # being repaired) is lost when its publisher is destroyed right after the last one.
-        if ack_timeout_s > 0 and messages and not stopped:
-            from rclpy.duration import Duration
-            for pub in [*publishers.values(), *([clock_pub] if clock_pub else [])]:
-                if not pub.wait_for_all_acked(Duration(nanoseconds=int(ack_timeout_s * 1e9))):
-                    logger.warning('%s: not all subscribers acknowledged within %.1f s',
-                                   pub.topic_name, ack_timeout_s)
-    finally:
-        for pub in publishers.values():
-            node.destroy_publisher(pub)
+    progress.loops += 1
+    first_ns = last_ns = None
+    loop_start = time.monotonic()
+    for topic, _, stamp_ns, raw in read_raw(path, list(publishers)):
+        if first_ns is None:
+            first_ns = stamp_ns
+        # Log times are sorted; max() guards against equal or odd stamps.
+        deadline = loop_start + max(stamp_ns - first_ns, 0) / _NS_PER_S / rate
+        if not _sleep_until(deadline, stop_event):
+            progress.stopped = True
+            break
         if clock_pub is not None:
-            node.destroy_publisher(clock_pub)
-    bag_s = bag_ns / _NS_PER_S
-    return {'messages': messages, 'per_topic': per_topic, 'loops': loops,
-            'bag_duration_s': bag_s, 'wall_s': wall_s,
-            'effective_rate': bag_s / wall_s if wall_s > 0 else float('nan'),
-            'stopped': stopped, 'skipped_types': skipped,
-            'waited_s': (wall_start if wall_start is not None else time.monotonic())
-            - pause_start, 'unmatched': unmatched}
+            sec, nanosec = divmod(stamp_ns, _NS_PER_S)
+            clock_pub.publish(clock_pub.msg_type(clock=Time(sec=sec, nanosec=nanosec)))
+        publishers[topic].publish(raw)
+        name = publishers[topic].topic_name
+        progress.per_topic[name] = progress.per_topic.get(name, 0) + 1
+        progress.messages += 1
+        last_ns = stamp_ns
+    if first_ns is not None and last_ns is not None:
+        progress.bag_ns += last_ns - first_ns
+    return first_ns is not None
+
+
+def _wait_acked(publishers: Iterable[Any], timeout_s: float) -> None:
+    """Like `ros2 bag play --wait-for-all-acked`: a reliable sample still in flight (or being
+    repaired) is lost when its publisher is destroyed right after the last one."""
+    from rclpy.duration import Duration
+    for pub in publishers:
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9))):
+            logger.warning('%s: not all subscribers acknowledged within %.1f s',
+                           pub.topic_name, timeout_s)
 
 
 def _summary(path: str | Path, stats: Mapping[str, Any]) -> str:

@@ -6,7 +6,9 @@ storage plugin (rosbag2 format version 9) by default, the Jazzy default.
 
 Conventions: stamps are integer nanoseconds; ``T_world_cam`` is the 4x4 pose of the camera
 frame in the world frame (maps camera-frame points to world-frame points); quaternions are
-``*_xyzw`` (scalar last, ROS order).
+``*_xyzw`` (scalar last, ROS order). Messages are built and read by :mod:`ekf_vo.bridge`;
+images read from a bag are decoded with the bridge's one decoder, :func:`decode_image`
+(re-exported here).
 """
 from __future__ import annotations
 
@@ -24,14 +26,19 @@ from rosbags.rosbag2.reader import Connection
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from ..ros import conversions as conv
+from ..bridge.camera_info import camera_info_from_params
+from ..bridge.common import (CAMERA_INFO, COMPRESSED_IMAGE, IMAGE, POSE_STAMPED, ns_to_stamp,
+                             stamp_to_ns)
+from ..bridge.image import decode_image, numpy_to_image
+from ..bridge.odometry import matrix_to_pose_stamped, pose_msg_to_matrix, quat_xyzw_to_matrix
 
 logger = logging.getLogger(__name__)
 
-IMAGE = 'sensor_msgs/msg/Image'
-COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
-CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
-POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+#: message types (from the bridge) and the image decoder, for the readers of decoded bags
+__all__ = ['IMAGE', 'COMPRESSED_IMAGE', 'CAMERA_INFO', 'POSE_STAMPED', 'decode_image',
+           'typestore', 'ns_to_time', 'time_to_ns', 'make_header', 'image_msg',
+           'compressed_msg', 'camera_info_msg', 'pose_stamped_msg', 'pose_to_matrix',
+           'BagWriter', 'bag_topics', 'topic_counts', 'read_raw', 'iter_bag', 'read_ground_truth']
 
 _TYPESTORE: Typestore | None = None
 
@@ -47,12 +54,12 @@ def typestore() -> Typestore:
 # --------------------------------------------------------------------------- message helpers
 def ns_to_time(stamp_ns: int) -> Any:
     """builtin_interfaces/Time for an integer nanosecond stamp."""
-    return conv.ns_to_stamp(stamp_ns, typestore())
+    return ns_to_stamp(stamp_ns, typestore())
 
 
 def time_to_ns(stamp: Any) -> int:
     """Integer nanoseconds of a builtin_interfaces/Time (rosbags or rclpy object)."""
-    return conv.stamp_to_ns(stamp)
+    return stamp_to_ns(stamp)
 
 
 def make_header(stamp_ns: int, frame_id: str) -> Any:
@@ -71,7 +78,7 @@ def image_msg(image: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
         encoding = 'bgr8'
     else:
         raise ValueError(f'unsupported image shape {img.shape}')
-    return conv.numpy_to_image(img, encoding, stamp_ns, frame_id, typestore=typestore())
+    return numpy_to_image(img, encoding, stamp_ns, frame_id, typestore=typestore())
 
 
 def compressed_msg(image: np.ndarray, stamp_ns: int, frame_id: str, fmt: str = 'jpeg',
@@ -102,39 +109,18 @@ def compressed_msg(image: np.ndarray, stamp_ns: int, frame_id: str, fmt: str = '
 def camera_info_msg(width: int, height: int, K: np.ndarray, D: Sequence[float],
                     distortion_model: str, stamp_ns: int, frame_id: str) -> Any:
     """sensor_msgs/CameraInfo with R = I and P = [K | 0]."""
-    return conv.camera_info_from_params(width, height, K, D, distortion_model, stamp_ns,
-                                        frame_id, typestore())
+    return camera_info_from_params(width, height, K, D, distortion_model, stamp_ns, frame_id,
+                                   typestore())
 
 
 def pose_stamped_msg(T_world_cam: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
     """geometry_msgs/PoseStamped of a 4x4 pose (``frame_id`` is the parent/world frame)."""
-    return conv.matrix_to_pose_stamped(T_world_cam, stamp_ns, frame_id, typestore())
+    return matrix_to_pose_stamped(T_world_cam, stamp_ns, frame_id, typestore())
 
 
 def pose_to_matrix(pose: Any) -> np.ndarray:
     """4x4 matrix of a geometry_msgs/Pose (rosbags object)."""
-    return conv.pose_msg_to_matrix(pose)
-
-
-def decode_image(msgtype: str, msg: Any) -> np.ndarray:
-    """uint8 array of a deserialized Image (mono8/bgr8/rgb8) or CompressedImage message."""
-    if msgtype == COMPRESSED_IMAGE:
-        buf = np.asarray(msg.data, dtype=np.uint8)
-        mono = msg.format.strip().startswith(('mono', '8UC1'))
-        img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if mono else cv2.IMREAD_COLOR)
-        if img is None:
-            raise ValueError(f'could not decode CompressedImage format {msg.format!r}')
-        return img
-    if msgtype != IMAGE:
-        raise ValueError(f'not an image message type: {msgtype}')
-    data = np.asarray(msg.data, dtype=np.uint8)
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    if msg.encoding in ('mono8', '8UC1'):
-        return data.reshape(h, step)[:, :w].copy()
-    if msg.encoding in ('bgr8', 'rgb8', '8UC3'):
-        img = data.reshape(h, step)[:, :w * 3].reshape(h, w, 3).copy()
-        return img[:, :, ::-1].copy() if msg.encoding == 'rgb8' else img
-    raise ValueError(f'unsupported image encoding {msg.encoding!r}')
+    return pose_msg_to_matrix(pose)
 
 
 # --------------------------------------------------------------------------- writing
@@ -250,6 +236,16 @@ def bag_topics(path: str | Path) -> dict[str, str]:
         return {c.topic: c.msgtype for c in reader.connections}
 
 
+def topic_counts(path: str | Path) -> dict[str, tuple[str, int]]:
+    """Map topic -> (message type, message count) of a rosbag2 directory."""
+    out: dict[str, tuple[str, int]] = {}
+    with Reader(Path(path)) as reader:
+        for c in reader.connections:
+            typ, n = out.get(c.topic, (c.msgtype, 0))
+            out[c.topic] = (typ, n + int(c.msgcount))
+    return out
+
+
 def read_raw(path: str | Path, topics: Iterable[str] | None = None
              ) -> Iterator[tuple[str, str, int, bytes]]:
     """Yield ``(topic, msgtype, stamp_ns, cdr_bytes)`` in log-time order."""
@@ -297,7 +293,7 @@ def read_ground_truth(path: str | Path, topic: str = '/ground_truth/pose'
         elif msgtype == 'geometry_msgs/msg/TransformStamped':
             tr, q = msg.transform.translation, msg.transform.rotation
             T = np.eye(4)
-            T[:3, :3] = conv.quat_xyzw_to_matrix([q.x, q.y, q.z, q.w])
+            T[:3, :3] = quat_xyzw_to_matrix([q.x, q.y, q.z, q.w])
             T[:3, 3] = [tr.x, tr.y, tr.z]
         else:
             raise ValueError(f'{topic}: unsupported ground-truth type {msgtype}')

@@ -1,0 +1,1 @@
+"""What the tests share that the product does not use: test data location, skips."""
