@@ -137,7 +137,8 @@ class VoConfig(_Params):
         1e-3, 'Initial standard deviation of position (m) and orientation (rad).', '',
         1e-9, 10.0, group='ekf')
     fading_memory: float = param(
-        1.0, 'Fading-memory factor S: P(k|k-1) = S F P F^T + G Q G^T (1 disables).', '',
+        1.0, 'Fading-memory factor lambda: P(k|k-1) = lambda F P F^T + G Q G^T '
+        '(1 disables; docs/method.md §3.4).', '',
         1.0, 1.5, group='ekf')
     default_dt_s: float = param(
         0.1, 'Time step used when stamps are unusable (first frames, equal stamps).', 's',

@@ -17,7 +17,7 @@ a body rate, what nav_msgs/Odometry's twist wants.
 Motion model, constant velocity, acceleration impulses n = [a, alpha]:
     r' = r + (v + a dt) dt,   q' = q * quat((w + alpha dt) dt),   v' = v + a dt,
     w' = w + alpha dt,        Q = diag(sigma_a^2 I3, sigma_alpha^2 I3)
-    P' = S F P F^T + G Q G^T  with the fading-memory factor S >= 1.
+    P' = lambda F P F^T + G Q G^T  with the fading-memory factor lambda >= 1.
 `update` serves every estimator: the camera-only filter is the joint filter of the
 in-filter refinement (§8) with zero points in its state.
 """
@@ -252,7 +252,8 @@ class CameraEKF:
             raise ValueError(f'dt must be positive, got {dt}')
         F, G = motion_jacobians(self.x, dt)
         Qn = np.diag([accel_sigma ** 2] * 3 + [angular_accel_sigma ** 2] * 3)
-        # fading memory (Qi et al. 2016, docs/method.md §3): inflate the prior by S >= 1
+        # fading memory (Qi et al. 2016, docs/method.md §3.4): inflate the prior by
+        # lambda >= 1
         self.P = fading_memory * (F @ self.P @ F.T) + G @ Qn @ G.T
         self.x = motion_model(self.x, dt)
         self.x, self.P = normalise_quaternion(self.x, self.P)

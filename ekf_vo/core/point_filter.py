@@ -50,7 +50,8 @@ So the state never exceeds 13 + N and the per-frame cost stays bounded by N.
 The camera part of the joint state lives in the CameraEKF (x, P) as always; this object
 holds the point part (rho (n,), cross-covariance P_cp (13,n), P_pp (n,n)) and assembles
 the joint state only for the update. Prediction: points are static, so
-    P_cp <- S F P_cp,   P_pp <- S P_pp   (F at the prior state, as CameraEKF.predict).
+    P_cp <- lambda F P_cp,   P_pp <- lambda P_pp   (lambda = fading_memory; F at the
+    prior state, as CameraEKF.predict).
 
 The update is the one robust update (robust_update.py, ekf.update) on the joint state
 (x, P) that `joint` assembles, with the model from `measurements`: map points and filter
