@@ -19,17 +19,23 @@ $(STAMP): requirements.txt requirements-test.txt setup.py
 demo: $(STAMP)
 	$(BIN)/ekf-vo-demo --out out/demo
 
-## All tests (those needing ../shared/data skip with a reason when it is absent).
+## All tests (those needing the developers' data folder skip with a reason when it is absent).
 test: $(STAMP)
 	$(BIN)/python -m pytest -q test
+
+## The tests without the slow ones (colcon build, wheel build): a quick check while editing.
+test-quick: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow" test
 
 ## Regenerate config/ekf_vo.yaml from the typed parameter definitions (ekf_vo/config.py).
 params: $(STAMP)
 	$(BIN)/ekf-vo-params --yaml > config/ekf_vo.yaml
 
+## Every benchmark, the full report in bench/results (committed).
 bench: $(STAMP)
 	$(BIN)/python -m bench.run_all --out bench/results
 
+## The reduced benchmarks into out/bench-quick (ignored): the committed report is untouched.
 bench-quick: $(STAMP)
 	$(BIN)/python -m bench.run_all --quick --out out/bench-quick
 

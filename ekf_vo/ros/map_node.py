@@ -32,17 +32,17 @@ import sys
 from typing import Any
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from ekf_vo.config import ConfigError, MapNodeConfig
+from ekf_vo.config import MapNodeConfig
 from ekf_vo.bridge.common import ConversionError, stamp_to_ns
 from ekf_vo.bridge.pointcloud2 import pointcloud2_to_numpy, points_to_pointcloud2
-from ekf_vo.ros.params import declare_from_dataclass, install_validation
+from ekf_vo.ros.lifecycle import run_nodes
+from ekf_vo.ros.params import (declare_from_dataclass, install_validation,
+                               warn_unknown_parameters)
 
 __all__ = ['MapNode', 'main', 'LANDMARKS_QOS', 'MAP_QOS']
 
@@ -70,6 +70,7 @@ class MapNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('map_node', **kwargs)
         self.config: MapNodeConfig = declare_from_dataclass(self, MapNodeConfig)
+        warn_unknown_parameters(self)
         self.points: dict[int, tuple[float, float, float, int]] = {}
         self.received = 0
         self.bad_messages = 0
@@ -200,21 +201,7 @@ class MapNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = MapNode()
-        rclpy.spin(node)
-    except ConfigError as exc:
-        rclpy.logging.get_logger('map_node').error(f'invalid parameters: {exc}')
-        return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_nodes('map_node', lambda: [MapNode()], args, config_error_code=1)
 
 
 if __name__ == '__main__':

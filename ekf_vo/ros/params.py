@@ -250,3 +250,32 @@ def install_validation(node: Node, cls: type[T], on_change: Callable[[T], None]
     node.add_on_set_parameters_callback(on_set)
     node.add_post_set_parameters_callback(post_set)
     return ValidationHandle(node, on_set, post_set)
+
+
+#: parameters every rclpy node accepts without declaring them
+_ROS_BUILTIN_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
+
+
+def unknown_parameters(node: Node) -> list[tuple[str, str | None]]:
+    """Parameters given to `node` (params file, `-p`) that no ekf_vo node declares, each
+    with the closest known name (or None). Names of every ekf_vo config count as known, so
+    `ekf_vo_nodes` (both nodes in one process, one set of overrides) warns only on names
+    neither node knows."""
+    import difflib
+
+    from ekf_vo.config import MapNodeConfig, NodeConfig, VoConfig
+    known = {f.name for cls in (VoConfig, NodeConfig, MapNodeConfig)
+             for f in dataclasses.fields(cls)}
+    known |= _ROS_BUILTIN_PARAMETERS | set(node._parameters)
+    given = set(getattr(node, '_parameter_overrides', {}))   # rclpy keeps them here
+    return [(name, next(iter(difflib.get_close_matches(name, sorted(known), n=1)), None))
+            for name in sorted(given - known)]
+
+
+def warn_unknown_parameters(node: Node) -> int:
+    """Log one warning per unknown parameter (see unknown_parameters); returns how many."""
+    unknown = unknown_parameters(node)
+    for name, closest in unknown:
+        hint = f"; did you mean '{closest}'?" if closest else ''
+        node.get_logger().warning(f"unknown parameter '{name}' ignored{hint}")
+    return len(unknown)

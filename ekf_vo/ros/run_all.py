@@ -7,34 +7,16 @@ ROS arguments (remaps, --params-file) apply to both, as with a composed process.
 """
 from __future__ import annotations
 
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+import sys
 
-from ..config import ConfigError
+from .lifecycle import run_nodes
 from .map_node import MapNode
 from .vo_node import VoNode
 
 
-def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    nodes = []
-    executor = SingleThreadedExecutor()
-    try:
-        nodes = [VoNode(), MapNode()]
-        for node in nodes:
-            executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ConfigError as exc:
-        rclpy.logging.get_logger('ekf_vo_nodes').fatal(f'invalid parameters: {exc}')
-        raise SystemExit(2) from exc
-    finally:
-        executor.shutdown()
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+def main(args: list[str] | None = None) -> int:
+    return run_nodes('ekf_vo_nodes', lambda: [VoNode(), MapNode()], args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -14,29 +14,29 @@ runs the estimator and publishes, so a slow frame never blocks the executor.
 from __future__ import annotations
 
 import collections
+import sys
 import threading
 import time
 from typing import Any
 
 import cv2
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from ..config import ConfigError, NodeConfig, VoConfig
+from ..config import NodeConfig, VoConfig
 from ..core.camera import CameraModelError
 from ..core.frames import camera_to_base, optical_to_body_extrinsic, points_to_odom
 from ..core.pipeline import TrackingState, VisualOdometry
 from ..core.stream import Rejection, VoStream
 from .. import bridge as conv
-from .params import declare_from_dataclass, install_validation
+from .lifecycle import run_nodes
+from .params import declare_from_dataclass, install_validation, warn_unknown_parameters
 
 #: each kind of rejected input is logged at most this often (and always counted)
 WARN_PERIOD_S = 5.0
@@ -51,6 +51,7 @@ class VoNode(Node):
         self.node_cfg: NodeConfig = declare_from_dataclass(self, NodeConfig)
         install_validation(self, VoConfig, self._on_core_params)
         install_validation(self, NodeConfig, self._on_node_params)
+        warn_unknown_parameters(self)
         self.T_base_cam = optical_to_body_extrinsic(self.node_cfg.T_base_cam_xyz,
                                                     self.node_cfg.T_base_cam_xyzw)
 
@@ -77,11 +78,15 @@ class VoNode(Node):
             sub_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
                                  history=HistoryPolicy.KEEP_LAST)
         self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, sub_qos)
-        image_topic = conv.transport_topic('image', self.node_cfg.image_transport)
+        self.image_topic = self._image_topic()
         if self.node_cfg.image_transport == 'compressed':
-            self.create_subscription(CompressedImage, image_topic, self._on_compressed, sub_qos)
+            self.create_subscription(CompressedImage, self.image_topic, self._on_compressed,
+                                     sub_qos)
         else:
-            self.create_subscription(Image, image_topic, self._on_image, sub_qos)
+            self.create_subscription(Image, self.image_topic, self._on_image, sub_qos)
+        self._last_image_time = time.monotonic()
+        self._last_state: str | None = None          # logged state, see _log_state_change
+        self.create_timer(WARN_PERIOD_S, self._check_inputs)
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.odom_pub = self.create_publisher(Odometry, 'odom', reliable)
@@ -98,6 +103,27 @@ class VoNode(Node):
             f'vo_node ready: estimator={self.core_cfg.estimator}, '
             f'transport={self.node_cfg.image_transport}, odom_frame='
             f'{self.node_cfg.odom_frame}, base_frame={self.node_cfg.base_frame}')
+
+    def _image_topic(self) -> str:
+        """The image topic to subscribe, image_transport's way: the `image` topic after
+        remapping, plus `/compressed` for the compressed transport (an explicit remap of
+        `image/compressed` still wins)."""
+        transport = self.node_cfg.image_transport
+        base = self.resolve_topic_name('image')
+        if transport == 'compressed':
+            own = self.resolve_topic_name('image/compressed')
+            if own != self.resolve_topic_name('image/compressed', only_expand=True):
+                return own
+        return conv.transport_topic(base, transport)
+
+    def _check_inputs(self) -> None:
+        """Say so when no image arrives: the commonest set-up mistake is a topic name."""
+        idle = time.monotonic() - self._last_image_time
+        if idle >= WARN_PERIOD_S:
+            what = 'since start' if self.counters['received'] == 0 else f'for {idle:.0f} s'
+            self.get_logger().warning(
+                f'no image on {self.image_topic} {what} (image_transport: '
+                f'{self.node_cfg.image_transport}); check the remapping')
 
     # ------------------------------------------------------------------ parameters
     def _on_core_params(self, cfg: VoConfig) -> None:
@@ -146,6 +172,7 @@ class VoNode(Node):
 
     def _enqueue(self, msg: Any, msgtype: str, what: str) -> None:
         received = time.perf_counter()
+        self._last_image_time = time.monotonic()
         self.counters['received'] += 1
         if self.stream.camera is None:
             self._warn('no_camera_info', f'{what} before any valid CameraInfo: skipped')
@@ -210,6 +237,7 @@ class VoNode(Node):
         if isinstance(result, Rejection):
             self._warn(result.key, result.text)
             return
+        self._log_state_change(result)
         if restarted or self.stream.n_requested_resets != n_requested:
             # a new map: odometry continues, but map_node and ~/path start again
             self._path.poses.clear()
@@ -235,6 +263,18 @@ class VoNode(Node):
             self._publish_status(result)
 
     # ------------------------------------------------------------------ outputs
+    def _log_state_change(self, result) -> None:
+        """initialising -> tracking -> lost, logged once per change with the reason."""
+        # the pipeline re-bootstraps at once after a loss: the frame says 'lost: why'
+        state_name = 'lost' if result.message.startswith('lost') else result.state.value
+        if state_name == self._last_state:
+            return
+        previous = self._last_state or 'started'
+        self._last_state = state_name
+        why = f': {result.message}' if result.message else ''
+        log = self.get_logger().warning if state_name == 'lost' else self.get_logger().info
+        log(f'{previous} -> {state_name}{why}')
+
     def _publish_odometry(self, result) -> None:
         T_odom_base, cov, twist, twist_cov = camera_to_base(
             result.T_world_cam, result.pose_cov, result.twist_cam, result.twist_cov,
@@ -349,30 +389,23 @@ class VoNode(Node):
         arr.status = [st]
         self.status_pub.publish(arr)
 
-    def destroy_node(self) -> None:
+    def stop(self) -> None:
+        """Stop the worker and wait for its frame to finish: after this nothing is
+        published, so the context may go (lifecycle.run_nodes calls it first)."""
         self._stop.set()
         with self._queue_cv:
             self._queue_cv.notify_all()
-        self._worker.join(timeout=2.0)
+        if self._worker.is_alive():
+            self._worker.join(timeout=5.0)
+
+    def destroy_node(self) -> None:
+        self.stop()
         super().destroy_node()
 
 
-def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = VoNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ConfigError as exc:
-        rclpy.logging.get_logger('vo_node').fatal(f'invalid parameters: {exc}')
-        raise SystemExit(2) from exc
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+def main(args: list[str] | None = None) -> int:
+    return run_nodes('vo_node', lambda: [VoNode()], args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
