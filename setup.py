@@ -14,6 +14,7 @@ setup(
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.py')),
+        ('share/' + PACKAGE + '/rviz', glob('rviz/*.rviz')),
         # the demo bag, found by ekf-vo-demo through the ament index (tools/demo.py)
         ('share/' + PACKAGE + '/bags/demo', glob('bags/demo/*')),
     ],

@@ -17,6 +17,8 @@ import sys
 from dataclasses import dataclass, field, fields
 from typing import Any, Iterable, Mapping
 
+from .cli import entry_point
+
 
 class ConfigError(ValueError):
     """A parameter value is missing, of the wrong type or out of range."""
@@ -253,9 +255,16 @@ class NodeConfig(_Params):
     T_base_cam_xyzw: tuple = param(
         (-0.5, 0.5, -0.5, 0.5), 'Camera optical frame orientation in the base frame, '
         'quaternion x y z w (default: REP-103 optical -> body rotation).', group='ros')
+    queue_policy: str = param(
+        'latest', 'latest: a live robot; at most queue_size frames wait for the estimator, '
+        'the oldest is dropped when it is behind (counted in ~/status as dropped_behind). '
+        'all: replay; every frame is processed in arrival order, nothing is dropped '
+        '(reliable keep-all subscription, images before the first CameraInfo wait for '
+        'it); pace the player (ekf-vo-play --rate) so the queue stays short.',
+        choices=('latest', 'all'), group='ros')
     queue_size: int = param(
-        2, 'Frames waiting for the estimator; older ones are dropped and counted.', 'count',
-        1, 100, group='ros')
+        2, 'queue_policy latest: frames waiting for the estimator; older ones are dropped '
+        'and counted.', 'count', 1, 100, group='ros')
     publish_path: bool = param(True, 'Publish ~/path (nav_msgs/Path) for RViz.', group='ros')
     max_path_length: int = param(5000, 'Poses kept in ~/path.', 'count', 1, 1000000,
                                  group='ros')
@@ -335,6 +344,47 @@ def from_mapping(cls: type, values: Mapping[str, Any], strict: bool = True) -> A
     return cls(**kwargs)
 
 
+def _parse_bool(text: str) -> bool:
+    low = text.strip().lower()
+    if low in ('1', 'true', 'yes', 'on'):
+        return True
+    if low in ('0', 'false', 'no', 'off'):
+        return False
+    raise ValueError(text)
+
+
+def _parse_int(text: str) -> int:
+    value = float(text)          # '300', '3e2' and '300.0' alike
+    if not value.is_integer():
+        raise ValueError(text)
+    return int(value)
+
+
+def _parse_floats(text: str) -> tuple:
+    return tuple(float(v) for v in text.split(',') if v.strip())
+
+
+def parse_value(name: str, text: str, default: Any, prefix: str = '') -> Any:
+    """Command-line ``text`` as the type of parameter ``name`` (that of its ``default``:
+    bool, int, float, str; a tuple takes comma-separated numbers). ConfigError naming
+    ``prefix + name`` and the expected type, e.g. "max_features: expected an integer,
+    got 'abc'". Ranges are checked by :func:`validate_dataclass`, not here."""
+    if isinstance(default, bool):
+        expected, convert = 'a boolean (true/false)', _parse_bool
+    elif isinstance(default, int):
+        expected, convert = 'an integer', _parse_int
+    elif isinstance(default, float):
+        expected, convert = 'a number', float
+    elif isinstance(default, tuple):
+        expected, convert = 'comma-separated numbers', _parse_floats
+    else:
+        return text
+    try:
+        return convert(text)
+    except ValueError:
+        raise ConfigError(f'{prefix}{name}: expected {expected}, got {text!r}') from None
+
+
 def describe(f: dataclasses.Field) -> str:
     """One-line description with unit and range, used in YAML and ROS descriptors."""
     meta = f.metadata
@@ -354,11 +404,25 @@ def describe(f: dataclasses.Field) -> str:
 def load_yaml_params(path: str, node_name: str = 'vo_node') -> dict[str, Any]:
     """The `ros__parameters` of `node_name` in a ROS params YAML file."""
     import yaml   # PyYAML comes with rclpy; imported lazily to keep the core light
-    with open(path, 'r', encoding='utf-8') as stream:
-        data = yaml.safe_load(stream) or {}
+    try:
+        with open(path, 'r', encoding='utf-8') as stream:
+            data = yaml.safe_load(stream) or {}
+    except OSError as exc:
+        raise ConfigError(f'cannot read params file {path}: {exc.strerror or exc}') from None
+    except UnicodeDecodeError:
+        raise ConfigError(f'{path}: not a text (UTF-8) YAML file') from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, 'problem_mark', None)
+        where = f'{path}:{mark.line + 1}' if mark is not None else str(path)
+        what = getattr(exc, 'problem', None) or str(exc).splitlines()[0]
+        raise ConfigError(f'{where}: invalid YAML: {what}') from None
     for key in (node_name, '/' + node_name, '/**'):
-        if key in data and 'ros__parameters' in data[key]:
-            return dict(data[key]['ros__parameters'])
+        section = data.get(key) if isinstance(data, dict) else None
+        if isinstance(section, dict) and 'ros__parameters' in section:
+            params = section['ros__parameters'] or {}
+            if not isinstance(params, dict):
+                raise ConfigError(f'{path}: {key}: ros__parameters must be a mapping')
+            return dict(params)
     raise ConfigError(f'{path}: no "{node_name}: ros__parameters:" section')
 
 
@@ -407,8 +471,10 @@ def to_yaml() -> str:
     return '\n'.join(lines) + '\n'
 
 
+@entry_point
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description='Print the ekf_vo parameters.')
+    parser = argparse.ArgumentParser(prog='ekf-vo-params',
+                                     description='Print the ekf_vo parameters.')
     parser.add_argument('--yaml', action='store_true', help='print the shipped YAML')
     args = parser.parse_args(argv)
     if args.yaml:

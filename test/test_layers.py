@@ -13,7 +13,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / 'ekf_vo'
 
 #: floor of each room (top-level subpackage or module of ekf_vo); higher imports lower
-FLOORS = {'config': 0, 'core': 1, 'bridge': 2, 'io': 2, 'ros': 3, 'tools': 4}
+FLOORS = {'cli': 0, 'config': 0, 'core': 1, 'bridge': 2, 'io': 2, 'ros': 3, 'tools': 4}
 
 
 def _room(module: str) -> str:

@@ -27,7 +27,7 @@ def camera_to_base(T_world_cam: np.ndarray, pose_cov: np.ndarray, twist_cam: np.
     pose_cov: 6x6 over (position, world rotation vector) of the camera in the VO world.
     twist_cam: (v, w) in the camera frame; the result is in the base frame (child frame).
     """
-    R_bc, t_bc = T_base_cam[:3, :3], T_base_cam[:3, 3]
+    R_bc = T_base_cam[:3, :3]
     T_cam_base = geo.invert_T(T_base_cam)
     T_odom_base = T_base_cam @ T_world_cam @ T_cam_base
     # base origin in the camera frame

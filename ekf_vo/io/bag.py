@@ -1,4 +1,5 @@
-"""rosbag2 reading and writing with the pure-Python ``rosbags`` library (no ROS install needed).
+"""rosbag2 reading and writing with the pure-Python ``rosbags`` library (no ROS install needed);
+ROS 1 ``.bag`` files (EuRoC, TUM RGB-D) are read too, their messages converted to ROS 2.
 
 Messages are built from, and deserialized into, the ``rosbags`` typestore classes of ROS 2
 Jazzy (``Stores.ROS2_JAZZY``) and (de)serialized as CDR.  Bags are written with the MCAP
@@ -12,15 +13,19 @@ images read from a bag are decoded with the bridge's one decoder, :func:`decode_
 """
 from __future__ import annotations
 
+import functools
 import logging
 import shutil
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 import cv2
 import numpy as np
+from rosbags.convert.converter import is_same_wireformat, migrate_message
+from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.reader import Connection
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -38,7 +43,8 @@ logger = logging.getLogger(__name__)
 __all__ = ['IMAGE', 'COMPRESSED_IMAGE', 'CAMERA_INFO', 'POSE_STAMPED', 'decode_image',
            'typestore', 'ns_to_time', 'time_to_ns', 'make_header', 'image_msg',
            'compressed_msg', 'camera_info_msg', 'pose_stamped_msg', 'pose_to_matrix',
-           'BagWriter', 'bag_topics', 'topic_counts', 'read_raw', 'iter_bag', 'read_ground_truth']
+           'BagWriter', 'BagError', 'is_ros1_bag', 'bag_topics', 'topic_counts', 'read_raw',
+           'iter_bag', 'read_ground_truth']
 
 _TYPESTORE: Typestore | None = None
 
@@ -218,6 +224,40 @@ class BagWriter:
 
 
 # --------------------------------------------------------------------------- reading
+class BagError(ValueError):
+    """A path that cannot be read as a bag (missing, not a bag, damaged); one-line message."""
+
+
+def is_ros1_bag(path: str | Path) -> bool:
+    """True for a ROS 1 bag file (``*.bag``); anything else is read as a rosbag2 bag."""
+    path = Path(path)
+    return path.suffix.lower() == '.bag' and not path.is_dir()
+
+
+@contextmanager
+def _open_bag(path: str | Path) -> Iterator[Reader | AnyReader]:
+    """An open reader (``.connections``, ``.messages(connections=...)``) of a rosbag2
+    directory (or a storage file in one) or a ROS 1 ``.bag`` file; BagError otherwise."""
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f'bag not found: {path}')
+    if path.is_file() and path.suffix in ('.mcap', '.db3') and \
+            (path.parent / 'metadata.yaml').is_file():
+        path = path.parent
+    if not is_ros1_bag(path) and not (path / 'metadata.yaml').is_file():
+        raise BagError(f'cannot open bag {path}: not a bag (a rosbag2 bag is a directory '
+                       f'with a metadata.yaml, a ROS 1 bag a .bag file)')
+    try:
+        reader = AnyReader([path]) if is_ros1_bag(path) else Reader(path)
+        reader.open()
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several types for a bad bag
+        raise BagError(f'cannot open bag {path}: {exc}') from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
 def _register_unknown(connections: Iterable[Connection]) -> None:
     """Add message types found in the bag but missing from the Jazzy typestore."""
     ts = typestore()
@@ -230,16 +270,68 @@ def _register_unknown(connections: Iterable[Connection]) -> None:
             logger.warning('cannot register %s from bag definition: %s', conn.msgtype, exc)
 
 
+def _ros1_to_cdr(bag_ts: Typestore, msgtypes: Iterable[str]
+                 ) -> dict[str, Callable[[bytes | memoryview], bytes]]:
+    """Per ROS 1 message type of a bag (typestore ``bag_ts`` from its definitions): a
+    converter of its ROS 1 bytes into the CDR bytes of the same ROS 2 (Jazzy) type, byte
+    for byte when the layouts match (``header.seq`` is dropped), else field by field as
+    ``rosbags-convert`` does. Types missing from Jazzy are registered from the bag."""
+    ts = typestore()
+    out: dict[str, Callable[[bytes | memoryview], bytes]] = {}
+    for msgtype in sorted(set(msgtypes)):
+        try:
+            if msgtype not in ts.fielddefs:
+                text = bag_ts.generate_msgdef(msgtype, ros_version=2)[0]
+                ts.register({k: v for k, v in get_types_from_msg(text, msgtype).items()
+                             if k not in ts.fielddefs})
+            if is_same_wireformat(bag_ts, ts, msgtype, msgtype):
+                out[msgtype] = functools.partial(_ros1_bytes_to_cdr, ts, msgtype)
+            else:
+                out[msgtype] = functools.partial(_ros1_migrate_to_cdr, bag_ts, ts, msgtype, {})
+        except Exception as exc:  # noqa: BLE001 - an unusual type: skip it, keep the rest
+            logger.warning('skipping %s of the ROS 1 bag: %s', msgtype, exc)
+    return out
+
+
+def _ros1_bytes_to_cdr(ts: Typestore, msgtype: str, raw: bytes | memoryview) -> bytes:
+    return bytes(ts.ros1_to_cdr(raw, msgtype))
+
+
+def _ros1_migrate_to_cdr(bag_ts: Typestore, ts: Typestore, msgtype: str, cache: dict,
+                         raw: bytes | memoryview) -> bytes:
+    msg = migrate_message(bag_ts, ts, msgtype, msgtype, cache,
+                          bag_ts.deserialize_ros1(raw, msgtype))
+    return bytes(ts.serialize_cdr(msg, msgtype))
+
+
+def _messages(reader: Reader | AnyReader, topics: Iterable[str] | None
+              ) -> Iterator[tuple[Connection, int, bytes | memoryview]]:
+    """``(connection, log time ns, CDR bytes)`` of ``topics`` (None: all) in log-time
+    order; the messages of a ROS 1 bag come converted to ROS 2 CDR."""
+    wanted = set(topics) if topics is not None else None
+    conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+    convert: dict[str, Callable[[bytes | memoryview], bytes]] = {}
+    if isinstance(reader, AnyReader):
+        convert = _ros1_to_cdr(reader.typestore, (c.msgtype for c in conns))
+        conns = [c for c in conns if c.msgtype in convert]
+    else:
+        _register_unknown(conns)
+    if not conns:          # (no connections would mean "all" to rosbags)
+        return
+    for conn, stamp_ns, raw in reader.messages(connections=conns):
+        yield conn, int(stamp_ns), convert[conn.msgtype](raw) if convert else raw
+
+
 def bag_topics(path: str | Path) -> dict[str, str]:
-    """Map topic -> message type of a rosbag2 directory."""
-    with Reader(Path(path)) as reader:
+    """Map topic -> message type of a rosbag2 bag or a ROS 1 .bag file."""
+    with _open_bag(path) as reader:
         return {c.topic: c.msgtype for c in reader.connections}
 
 
 def topic_counts(path: str | Path) -> dict[str, tuple[str, int]]:
-    """Map topic -> (message type, message count) of a rosbag2 directory."""
+    """Map topic -> (message type, message count) of a rosbag2 bag or a ROS 1 .bag file."""
     out: dict[str, tuple[str, int]] = {}
-    with Reader(Path(path)) as reader:
+    with _open_bag(path) as reader:
         for c in reader.connections:
             typ, n = out.get(c.topic, (c.msgtype, 0))
             out[c.topic] = (typ, n + int(c.msgcount))
@@ -248,29 +340,22 @@ def topic_counts(path: str | Path) -> dict[str, tuple[str, int]]:
 
 def read_raw(path: str | Path, topics: Iterable[str] | None = None
              ) -> Iterator[tuple[str, str, int, bytes]]:
-    """Yield ``(topic, msgtype, stamp_ns, cdr_bytes)`` in log-time order."""
-    wanted = set(topics) if topics is not None else None
-    with Reader(Path(path)) as reader:
-        conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
-        if not conns:
-            return
-        for conn, stamp_ns, raw in reader.messages(connections=conns):
-            yield conn.topic, conn.msgtype, int(stamp_ns), bytes(raw)
+    """Yield ``(topic, msgtype, stamp_ns, cdr_bytes)`` in log-time order (ROS 2 CDR, also
+    for a ROS 1 bag, whose messages are converted)."""
+    with _open_bag(path) as reader:
+        for conn, stamp_ns, raw in _messages(reader, topics):
+            yield conn.topic, conn.msgtype, stamp_ns, bytes(raw)
 
 
 def iter_bag(path: str | Path, topics: Iterable[str] | None = None
              ) -> Iterator[tuple[str, str, int, Any]]:
     """Yield ``(topic, msgtype, stamp_ns, msg)`` in log-time order, msg deserialized
-    into rosbags typestore classes; ``topics=None`` reads all topics."""
+    into rosbags typestore classes of ROS 2 Jazzy (also for a ROS 1 bag: same fields as
+    from its rosbag2 twin); ``topics=None`` reads all topics."""
     ts = typestore()
-    wanted = set(topics) if topics is not None else None
-    with Reader(Path(path)) as reader:
-        conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
-        if not conns:
-            return
-        _register_unknown(conns)
-        for conn, stamp_ns, raw in reader.messages(connections=conns):
-            yield conn.topic, conn.msgtype, int(stamp_ns), ts.deserialize_cdr(raw, conn.msgtype)
+    with _open_bag(path) as reader:
+        for conn, stamp_ns, raw in _messages(reader, topics):
+            yield conn.topic, conn.msgtype, stamp_ns, ts.deserialize_cdr(raw, conn.msgtype)
 
 
 def read_ground_truth(path: str | Path, topic: str = '/ground_truth/pose'

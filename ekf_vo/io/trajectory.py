@@ -18,6 +18,7 @@ One pose per line, whitespace separated, lines starting with ``#`` are comments.
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Union
 
@@ -32,7 +33,7 @@ PathLike = Union[str, Path]
 GT_TOPIC = '/ground_truth/pose'
 
 _TUM_HEADER = '# timestamp tx ty tz qx qy qz qw'
-_BAG_SUFFIXES = ('.mcap', '.db3')
+_BAG_SUFFIXES = ('.mcap', '.db3', '.bag')
 
 
 def poses_from_tum_rows(t_xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
@@ -94,31 +95,44 @@ def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
 
     Raises:
         FileNotFoundError: missing file.
-        ValueError: a data line does not have exactly 8 numeric columns.
+        ValueError: a data line does not have exactly 8 finite numeric columns or has a
+            zero quaternion (the message names the file and line).
     """
     path = Path(path)
     stamps: list[float] = []
     rows: list[list[float]] = []
-    with path.open('r', encoding='utf-8') as f:
-        for lineno, line in enumerate(f, start=1):
-            line = line.split('#', 1)[0].strip()
-            if not line:
-                continue
-            parts = line.replace(',', ' ').split()
-            if len(parts) != 8:
-                raise ValueError(
-                    f'{path}:{lineno}: expected 8 columns '
-                    f'(timestamp tx ty tz qx qy qz qw), got {len(parts)}')
-            try:
-                vals = [float(p) for p in parts]
-            except ValueError as exc:
-                raise ValueError(f'{path}:{lineno}: non-numeric value: {exc}') from exc
-            stamps.append(vals[0])
-            rows.append(vals[1:])
+    try:
+        text = path.read_bytes().decode('utf-8')
+    except UnicodeDecodeError:
+        raise ValueError(f'{path}: not a text file (expected a TUM trajectory)') from None
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        line = line.split('#', 1)[0].strip()
+        if not line:
+            continue
+        parts = line.replace(',', ' ').split()
+        if len(parts) != 8:
+            raise ValueError(
+                f'{path}:{lineno}: expected 8 columns '
+                f'(timestamp tx ty tz qx qy qz qw), got {len(parts)}')
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError as exc:
+            raise ValueError(f'{path}:{lineno}: non-numeric value: {exc}') from exc
+        _check_tum_row(vals, f'{path}:{lineno}')
+        stamps.append(vals[0])
+        rows.append(vals[1:])
     data = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
     T = poses_from_tum_rows(data[:, :3], data[:, 3:7])
     logger.debug('read %d poses from %s', len(stamps), path)
     return np.asarray(stamps, dtype=np.float64), T
+
+
+def _check_tum_row(vals: list[float], where: str) -> None:
+    """ValueError naming ``where`` (file:line) for a non-finite value or a zero quaternion."""
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError(f'{where}: non-finite value (nan or inf)')
+    if sum(v * v for v in vals[4:8]) < 1e-18:
+        raise ValueError(f'{where}: quaternion qx qy qz qw has zero norm')
 
 
 def check_poses(stamps_s: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -159,7 +173,8 @@ def write_tum(path: PathLike, stamps_s: np.ndarray, T_world_cam: np.ndarray) -> 
 
 
 def is_bag_path(path: PathLike) -> bool:
-    """True if ``path`` looks like a rosbag2 bag (directory, ``.mcap`` or ``.db3`` file)."""
+    """True if ``path`` looks like a bag: rosbag2 (directory, ``.mcap`` or ``.db3`` file)
+    or ROS 1 (``.bag`` file)."""
     path = Path(path)
     return path.is_dir() or path.suffix.lower() in _BAG_SUFFIXES
 
@@ -173,7 +188,8 @@ def read_gt_from_bag(path: PathLike, topic: str = GT_TOPIC) -> tuple[np.ndarray,
     receive time.
 
     Args:
-        path: bag directory (with metadata.yaml), or a single ``.mcap`` / ``.db3`` file.
+        path: bag directory (with metadata.yaml), a ``.mcap`` / ``.db3`` file in one, or a
+            ROS 1 ``.bag`` file.
         topic: ground-truth topic name.
 
     Returns:

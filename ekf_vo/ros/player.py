@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from ..io.bag import bag_topics, read_raw
+from ..cli import entry_point
+from ..io.bag import BagError, bag_topics, read_raw
 
 logger = logging.getLogger(__name__)
 
@@ -196,7 +197,10 @@ def _create_publishers(node: Any, path: Path, topics: Iterable[str] | None,
                        remap: Mapping[str, str], qos_profile: Any
                        ) -> tuple[dict[str, Any], dict[str, str]]:
     """``({bag topic: publisher}, {bag topic: type not importable})`` of the played topics."""
-    bag_types = bag_topics(path)
+    try:
+        bag_types = bag_topics(path)
+    except BagError as exc:
+        raise PlayError(str(exc)) from None
     if topics is not None:
         wanted = {_absolute(t) for t in topics}
         unknown = wanted - {_absolute(t) for t in bag_types}
@@ -328,11 +332,13 @@ def _split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='ekf-vo-play',
-        description='Replay a rosbag2 directory over DDS (stand-in for `ros2 bag play`).')
-    parser.add_argument('bag', help='rosbag2 directory')
+        description='Replay a rosbag2 directory (or a ROS 1 .bag file, converted on the fly) '
+        'over DDS (stand-in for `ros2 bag play`).')
+    parser.add_argument('bag', help='rosbag2 directory or ROS 1 .bag file')
     parser.add_argument('--rate', type=float, default=1.0, help='speed factor (default 1.0)')
     parser.add_argument('--loop', action='store_true', help='restart at the end (until Ctrl-C)')
-    parser.add_argument('--topics', nargs='+', metavar='T', help='only these topics')
+    parser.add_argument('--topics', nargs='+', metavar='T',
+                        help='only these topics (default: every topic of the bag)')
     parser.add_argument('--remap', nargs='+', metavar='OLD:=NEW', default=[],
                         help='publish bag topic OLD as NEW')
     parser.add_argument('--start-paused-s', type=float, default=0.5,
@@ -349,6 +355,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@entry_point
 def main(argv: list[str] | None = None) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions

@@ -7,8 +7,10 @@ Publishes   odom (nav_msgs/Odometry, reliable), landmarks (PointCloud2 updates f
             ~/debug_image (sensor_msgs/Image, only computed while subscribed).
 Services    ~/reset (std_srvs/Trigger).
 
-Threading: subscription callbacks only convert and enqueue (bounded queue of
-`queue_size` frames; when full the OLDEST frame is dropped and counted); one worker thread
+Threading: subscription callbacks only convert and enqueue; with `queue_policy: latest`
+the queue holds `queue_size` frames and, when full, the OLDEST frame is dropped and counted;
+with `queue_policy: all` (replay) nothing is dropped and frames wait for the first
+CameraInfo. One worker thread
 runs the estimator and publishes, so a slow frame never blocks the executor.
 """
 from __future__ import annotations
@@ -74,7 +76,11 @@ class VoNode(Node):
         self._last_warned: dict[str, float] = {}
 
         sub_qos = qos_profile_sensor_data
-        if self.node_cfg.reliable_qos:
+        if self.node_cfg.queue_policy == 'all':
+            # replay: nothing may be lost between the player and the queue either
+            sub_qos = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
+                                 history=HistoryPolicy.KEEP_ALL)
+        elif self.node_cfg.reliable_qos:
             sub_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
                                  history=HistoryPolicy.KEEP_LAST)
         self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, sub_qos)
@@ -161,6 +167,9 @@ class VoNode(Node):
         except (conv.ConversionError, CameraModelError, ValueError) as exc:
             self._warn('bad_camera_info', f'CameraInfo rejected: {exc}')
             return
+        if changed:
+            with self._queue_cv:
+                self._queue_cv.notify_all()      # frames may be waiting for a camera
         if changed and had_camera:
             self.get_logger().info('CameraInfo changed: re-initialising the estimator')
 
@@ -174,7 +183,8 @@ class VoNode(Node):
         received = time.perf_counter()
         self._last_image_time = time.monotonic()
         self.counters['received'] += 1
-        if self.stream.camera is None:
+        replay = self.node_cfg.queue_policy == 'all'
+        if self.stream.camera is None and not replay:
             self._warn('no_camera_info', f'{what} before any valid CameraInfo: skipped')
             return
         try:
@@ -194,7 +204,7 @@ class VoNode(Node):
             if self.stream.counters['time_resets'] != time_resets:
                 self._warn('time_resets', 'time went backwards (looping bag or sim reset): '
                            'resetting')
-            if len(self._queue) >= self.node_cfg.queue_size:
+            if not replay and len(self._queue) >= self.node_cfg.queue_size:
                 self._queue.popleft()
                 self._warn('dropped_behind', 'estimator behind: dropped the oldest frame')
             self._queue.append((stamp_ns, gray, received))
@@ -213,7 +223,9 @@ class VoNode(Node):
     def _work(self) -> None:
         while not self._stop.is_set():
             with self._queue_cv:
-                while not self._queue and not self._stop.is_set():
+                # queue_policy all: frames that came before the first CameraInfo wait
+                while not self._stop.is_set() and (
+                        not self._queue or self.stream.camera is None):
                     self._queue_cv.wait(timeout=0.2)
                 if self._stop.is_set():
                     return

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from ..bridge.topics import transport_topic
+from ..cli import UsageError, check_writable, entry_point
 from ..io.trajectory import GT_TOPIC
 from .convert_sources import (FORMATS, ConvertError, SourceSequence, interpolate_poses,
                               load_source, tum_camera_from_name)
@@ -132,6 +133,15 @@ def convert(fmt: str, src: str | Path, out_bag: str | Path, *, compressed: bool 
         raise ConvertError(f'--limit must be positive, got {limit}')
     if Path(out_bag).exists() and not overwrite:
         raise ConvertError(f'{out_bag} exists (use --overwrite)')
+    if not Path(out_bag).exists():
+        try:
+            check_writable(Path(out_bag) / 'metadata.yaml', 'OUT_BAG')
+        except UsageError as exc:
+            raise ConvertError(str(exc)) from None
+    if Path(src).suffix.lower() == '.bag' and Path(src).is_file():
+        raise ConvertError(f'{src} is a ROS 1 bag: no conversion needed, ekf-vo-run, '
+                           'ekf-vo-play and ekf-vo-eval read it as it is (ekf-vo-convert '
+                           'reads dataset folders)')
     seq = load_source(fmt, src, poses=poses, camera=camera)
     return write_sequence(seq, out_bag, compressed=compressed, limit=limit,
                           camera_topic=camera_topic, overwrite=overwrite, progress=progress)
@@ -151,7 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='write PNG CompressedImage on <camera-topic>/image_raw/compressed '
                    'instead of raw mono8 Image')
     p.add_argument('--limit', type=int, default=None, metavar='N', help='first N frames only')
-    p.add_argument('--camera-topic', default='/camera', help='topic namespace of the camera')
+    p.add_argument('--camera-topic', default='/camera',
+                   help='topic namespace of the camera (default: /camera)')
     p.add_argument('--poses', type=Path, default=None,
                    help='kitti: ground-truth poses file (default SRC/poses.txt or '
                    '../poses/NN.txt)')
@@ -163,6 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@entry_point
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point ``ekf-vo-convert``; exit 0 ok, 2 bad input."""
     args = build_parser().parse_args(argv)

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cli import HelpFormatter, UsageError, check_writable, entry_point
+
 #: the source tree (a checkout or an editable install); bags/ and config/ are here
 SOURCE_ROOT = Path(__file__).resolve().parents[2]
 
@@ -59,10 +61,14 @@ def load_demo_frames(bag: Path | None = None) -> tuple[dict, list]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--bag', type=Path, default=demo_bag())
-    parser.add_argument('--params', type=Path, default=package_file('config/ekf_vo.yaml'))
-    parser.add_argument('--out', type=Path, default=Path('out/demo'))
+    parser = argparse.ArgumentParser(prog='ekf-vo-demo', description=__doc__.split('\n')[0],
+                                     formatter_class=HelpFormatter)
+    parser.add_argument('--bag', type=Path, default=demo_bag(),
+                        help='bag to play (rosbag2 directory or ROS 1 .bag file)')
+    parser.add_argument('--params', type=Path, default=package_file('config/ekf_vo.yaml'),
+                        help='params file of the nodes')
+    parser.add_argument('--out', type=Path, default=Path('out/demo'),
+                        help='output folder (trajectories, summary.json, plot, node log)')
     parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
     parser.add_argument('--domain-id', type=int, default=int(os.environ.get(
         'EKF_VO_DEMO_DOMAIN', '77')), help='private DDS domain for the demo')
@@ -171,8 +177,28 @@ def report(args: argparse.Namespace, result, n_frames: int, n_odom: int, n_map: 
           f'{args.out / "summary.json"}')
 
 
+def check_inputs(args: argparse.Namespace) -> str | None:
+    """Why the demo cannot run (bag, params file, output folder), before any node starts;
+    None when it can."""
+    from ..bridge.topics import TopicError, select_camera_topics
+    from ..config import ConfigError
+    from ..io.bag import BagError, bag_topics
+    try:
+        select_camera_topics(bag_topics(args.bag))
+        base_cam_extrinsic(args.params)
+        check_writable(args.out / 'summary.json', '--out')
+    except (BagError, TopicError, ConfigError, UsageError) as exc:
+        return str(exc)
+    return None
+
+
+@entry_point
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    problem = check_inputs(args)
+    if problem is not None:
+        print(f'ekf-vo-demo: error: {problem}', file=sys.stderr)
+        return 2
     # private, localhost-only DDS traffic: the demo must not talk to a robot on the LAN
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     t_start = time.perf_counter()

@@ -30,6 +30,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from ekf_vo.cli import UsageError, check_writable, entry_point
 from ekf_vo.io.trajectory import GT_TOPIC, check_poses, is_bag_path, read_trajectory
 
 logger = logging.getLogger(__name__)
@@ -398,7 +399,8 @@ def _build_parser() -> argparse.ArgumentParser:
         prog='ekf-vo-eval',
         description='Evaluate an estimated trajectory (TUM) against ground truth with evo: '
                     'ATE after Sim(3)/SE(3) Umeyama alignment, RPE per frame, rotation error.')
-    p.add_argument('gt', help='ground truth: TUM file, or rosbag2 bag (directory/.mcap/.db3)')
+    p.add_argument('gt', help='ground truth: TUM file, rosbag2 bag (directory/.mcap/.db3) '
+                   'or ROS 1 .bag file')
     p.add_argument('est', help='estimated trajectory, TUM file')
     p.add_argument('--gt-topic', default=GT_TOPIC,
                    help=f'PoseStamped ground-truth topic when GT is a bag (default {GT_TOPIC})')
@@ -416,6 +418,18 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _check_plot_path(path: str) -> None:
+    """UsageError unless matplotlib can write ``path`` (format from its suffix, writable)."""
+    from matplotlib.figure import Figure
+    formats = Figure().canvas.get_supported_filetypes()
+    suffix = Path(path).suffix.lower().lstrip('.')
+    if suffix not in formats:
+        raise UsageError(f'--plot {path}: unsupported image format {suffix!r} '
+                         f'(use one of {", ".join(sorted(formats))})')
+    check_writable(path, '--plot')
+
+
+@entry_point
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Console entry point ``ekf-vo-eval``. Returns the process exit code."""
     args = _build_parser().parse_args(argv)
@@ -426,6 +440,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             print(f'ekf-vo-eval: error: {p} does not exist', file=sys.stderr)
             return 2
     try:
+        if args.plot:
+            _check_plot_path(args.plot)
+    except UsageError as exc:
+        print(f'ekf-vo-eval: error: {exc}', file=sys.stderr)
+        return 2
+    try:
         gt_stamps, gt_T = read_trajectory(args.gt, args.gt_topic)
         if is_bag_path(args.est):
             print('ekf-vo-eval: error: EST must be a TUM file', file=sys.stderr)
@@ -435,6 +455,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                        max_time_diff_s=args.max_diff, n_frames_total=args.frames)
     except (ValueError, EvaluationError) as exc:
         print(f'ekf-vo-eval: error: {exc}', file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f'ekf-vo-eval: error: cannot read {exc.filename}: {exc.strerror}',
+              file=sys.stderr)
         return 1
     if args.plot:
         plot_result(res, args.plot, title=f'{Path(args.est).name} vs {Path(args.gt).name}')

@@ -56,9 +56,12 @@ from typing import Any
 import numpy as np
 
 from ..bridge.topics import TopicError, select_camera_topics, topic_listing
-from ..config import ConfigError, NodeConfig, VoConfig, load_yaml_params, split_params
+from ..cli import HelpFormatter, UsageError, check_writable, entry_point
+from ..config import (ConfigError, NodeConfig, VoConfig, load_yaml_params, parse_value,
+                      split_params)
 from ..core.pipeline import TrackingState
 from ..core.stream import VoStream
+from ..io.bag import BagError
 from ..io.bag import topic_counts as _topic_counts
 from ..io.trajectory import GT_TOPIC
 
@@ -167,15 +170,6 @@ def _finite(obj: Any) -> Any:
 
 
 # ============================================================================ parameters
-def _parse_bool(text: str) -> bool:
-    low = text.strip().lower()
-    if low in ('1', 'true', 'yes', 'on'):
-        return True
-    if low in ('0', 'false', 'no', 'off'):
-        return False
-    raise ValueError(f'{text!r} is not a boolean (true/false)')
-
-
 def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     """``['name=value', ...]`` -> ``{name: typed value}`` for :class:`VoConfig` fields.
 
@@ -199,25 +193,7 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
                                   f'offline runner (core parameters only)')
             raise ConfigError(f'--set {name}: unknown parameter (list them with '
                               f'ekf-vo-params)')
-        default = core[name].default
-        try:
-            if isinstance(default, bool):
-                value: Any = _parse_bool(text)
-            elif isinstance(default, int):
-                f = float(text)
-                if not f.is_integer():
-                    raise ValueError(f'{text!r} is not an integer')
-                value = int(f)
-            elif isinstance(default, float):
-                value = float(text)
-            elif isinstance(default, tuple):
-                value = tuple(float(v) for v in text.split(',') if v.strip())
-            else:
-                value = text
-        except ValueError as exc:
-            raise ConfigError(f'--set {name}={text}: {exc} (type '
-                              f'{type(default).__name__})') from None
-        out[name] = value
+        out[name] = parse_value(name, text, core[name].default, '--set ')
     return out
 
 
@@ -292,7 +268,7 @@ def run_bag(bag: str | Path,
     """Run :class:`ekf_vo.core.pipeline.VisualOdometry` on a bag (see the module docstring).
 
     Args:
-        bag: rosbag2 directory (or single .mcap/.db3 file).
+        bag: rosbag2 directory (or its .mcap/.db3 file) or ROS 1 .bag file.
         params: params YAML path, flat vo_node parameter mapping, VoConfig or None.
         overrides: core parameter -> value, applied last.
         image_topic, info_topic, gt_topic: override the automatic topic choice.
@@ -313,25 +289,17 @@ def run_bag(bag: str | Path,
         RunError: missing bag or topics, ``gt_bootstrap`` without ground truth.
         ConfigError: bad parameters.
     """
-    from ..io.bag import read_ground_truth
-
     bag = Path(bag)
     if not bag.exists():
         raise RunError(f'bag not found: {bag}')
     cfg = make_config(params, overrides)
     try:
         counts = _topic_counts(bag)
-    except Exception as exc:  # noqa: BLE001 - rosbags raises several types for a bad bag
-        raise RunError(f'cannot open bag {bag}: {exc}') from exc
+    except BagError as exc:
+        raise RunError(str(exc)) from None
     image_topic, info_topic, gt_topic = select_topics(
         {t: m for t, (m, _) in counts.items()}, image_topic, info_topic, gt_topic)
-    if gt_bootstrap and gt_topic is None:
-        raise RunError('--gt-bootstrap needs ground truth: the bag has no '
-                       f'{GT_TOPIC} (give --gt-topic)')
-    gt_ns, gt_T = np.zeros(0, np.int64), np.zeros((0, 4, 4))
-    if gt_topic is not None:
-        gt_ns, gt_T = read_ground_truth(bag, gt_topic)
-
+    gt_ns, gt_T = _ground_truth(bag, gt_topic, gt_bootstrap)
     summary = RunSummary(str(bag), image_topic, info_topic, gt_topic, cfg,
                          gt_bootstrap=gt_bootstrap)
     n_images = counts[image_topic][1]
@@ -363,6 +331,22 @@ def run_bag(bag: str | Path,
     return summary
 
 
+def _ground_truth(bag: Path, gt_topic: str | None, gt_bootstrap: bool
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps ns, T_world_cam) of ``gt_topic`` (empty for None); RunError when it is
+    unusable or missing for ``gt_bootstrap``."""
+    from ..io.bag import read_ground_truth
+    if gt_bootstrap and gt_topic is None:
+        raise RunError('--gt-bootstrap needs ground truth: the bag has no '
+                       f'{GT_TOPIC} (give --gt-topic)')
+    if gt_topic is None:
+        return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+    try:
+        return read_ground_truth(bag, gt_topic)
+    except ValueError as exc:     # unsupported type, broken message
+        raise RunError(str(exc)) from None
+
+
 def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
                  limit: int | None, bar, known_poses
                  ) -> tuple[VoStream, list[float], list[np.ndarray]]:
@@ -380,7 +364,27 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
     stream = VoStream(cfg, seed=seed)
     stamps_s: list[float] = []
     poses: list[np.ndarray] = []
+    waiting: list[tuple[int, int, np.ndarray]] = []    # images before the first CameraInfo
     warned_info = False
+
+    def process(log_ns: int, stamp_ns: int, gray: np.ndarray) -> None:
+        known = None
+        if known_poses is not None and stream.state == TrackingState.INITIALISING:
+            known = _pose_at(*known_poses[:2], stamp_ns, known_poses[2])
+        res = stream.process(gray, stamp_ns, known)
+        if isinstance(res, Rejection):
+            logger.warning('skipping image at %d ns: %s', log_ns, res.text)
+            summary.frames_skipped += 1
+            return
+        summary.frames += 1
+        summary.frame_stats.append(FrameStats(
+            stamp_ns, res.state.value, bool(res.ok), int(res.n_tracks),
+            int(res.n_matches), int(res.n_inliers), int(res.n_new_points),
+            int(res.map_size), dict(res.timings_ms), res.message))
+        if res.ok and res.T_world_cam is not None:
+            stamps_s.append(stamp_ns * 1e-9)
+            poses.append(np.asarray(res.T_world_cam, dtype=np.float64))
+
     t0 = time.perf_counter()
     for topic, msgtype, log_ns, msg in iter_bag(bag, [summary.image_topic,
                                                       summary.info_topic]):
@@ -394,14 +398,13 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
                 if not warned_info:
                     logger.warning('unusable CameraInfo on %s: %s', topic, exc)
                     warned_info = True
+            while waiting and stream.camera is not None:
+                process(*waiting.pop(0))
             continue
-        if limit is not None and summary.frames >= limit:
+        if limit is not None and summary.frames + len(waiting) >= limit:
             break
         if bar is not None:
             bar.update(1)
-        if stream.camera is None:
-            summary.frames_skipped += 1
-            continue
         try:
             gray = decode_image(msgtype, msg, gray=True)
             stamp_ns = stamp_to_ns(msg.header.stamp)
@@ -409,22 +412,16 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
             logger.warning('skipping image at %d ns: %s', log_ns, exc)
             summary.frames_skipped += 1
             continue
-        known = None
-        if known_poses is not None and stream.state == TrackingState.INITIALISING:
-            known = _pose_at(*known_poses[:2], stamp_ns, known_poses[2])
-        res = stream.admit(stamp_ns) or stream.process(gray, stamp_ns, known)
-        if isinstance(res, Rejection):
-            logger.warning('skipping image at %d ns: %s', log_ns, res.text)
+        rejected = stream.admit(stamp_ns)
+        if rejected is not None:
+            logger.warning('skipping image at %d ns: %s', log_ns, rejected.text)
             summary.frames_skipped += 1
-            continue
-        summary.frames += 1
-        summary.frame_stats.append(FrameStats(
-            stamp_ns, res.state.value, bool(res.ok), int(res.n_tracks),
-            int(res.n_matches), int(res.n_inliers), int(res.n_new_points),
-            int(res.map_size), dict(res.timings_ms), res.message))
-        if res.ok and res.T_world_cam is not None:
-            stamps_s.append(stamp_ns * 1e-9)
-            poses.append(np.asarray(res.T_world_cam, dtype=np.float64))
+        elif stream.camera is None:
+            # as vo_node's queue_policy all: an image waits for the first CameraInfo
+            waiting.append((log_ns, stamp_ns, gray))
+        else:
+            process(log_ns, stamp_ns, gray)
+    summary.frames_skipped += len(waiting)        # no CameraInfo ever came for these
     summary.wall_s = time.perf_counter() - t0
     summary.n_resets = stream.n_resets
     summary.n_camera_changes = stream.n_camera_changes
@@ -510,17 +507,22 @@ def format_summary(s: RunSummary) -> str:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='ekf-vo-run', description='Run ekf_vo offline on a rosbag2 bag (no ROS needed), '
-        'write the trajectory (TUM) and evaluate it against the ground truth in the bag.')
-    p.add_argument('bag', type=Path, help='rosbag2 directory (MCAP or sqlite3)')
+        'write the trajectory (TUM) and evaluate it against the ground truth in the bag.',
+        formatter_class=HelpFormatter)
+    p.add_argument('bag', type=Path, help='rosbag2 directory (MCAP or sqlite3) or ROS 1 '
+                   '.bag file')
     p.add_argument('-o', '--output', type=Path, required=True, metavar='EST.tum',
                    help='estimated trajectory (camera optical frame, ok frames), TUM format')
     p.add_argument('--params', type=Path, default=None,
                    help='ROS params YAML with a "vo_node: ros__parameters:" section '
                    '(default: the built-in defaults = config/ekf_vo.yaml)')
     p.add_argument('--set', dest='overrides', action='append', default=[],
-                   metavar='NAME=VALUE', nargs='+', help='override core parameters')
-    p.add_argument('--image-topic', default=None)
-    p.add_argument('--info-topic', default=None)
+                   metavar='NAME=VALUE', nargs='+',
+                   help='override core parameters (list them with ekf-vo-params)')
+    p.add_argument('--image-topic', default=None, help='Image or CompressedImage topic '
+                   '(default: the first Image topic, else the first CompressedImage one)')
+    p.add_argument('--info-topic', default=None, help='CameraInfo topic (default: the one '
+                   'in the image topic\'s namespace, else the first one)')
     p.add_argument('--gt-topic', default=None,
                    help=f'ground-truth PoseStamped topic (default {GT_TOPIC} when present)')
     p.add_argument('--stats', type=Path, default=None, metavar='stats.csv',
@@ -538,6 +540,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@entry_point
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point ``ekf-vo-run``; exit 0 ok, 2 bad input."""
     args = build_parser().parse_args(argv)
@@ -548,13 +551,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         overrides = parse_overrides([item for group in args.overrides for item in group])
+        for option, path in (('-o', args.output), ('--stats', args.stats),
+                             ('--json', args.json)):
+            if path is not None:
+                check_writable(path, option)    # before the bag, not after it
         summary = run_bag(args.bag, args.params, overrides, image_topic=args.image_topic,
                           info_topic=args.info_topic, gt_topic=args.gt_topic,
                           limit=args.limit, gt_bootstrap=args.gt_bootstrap,
                           out_tum=args.output, stats_csv=args.stats,
                           progress=not args.quiet, max_time_diff_s=args.max_time_diff,
                           seed=args.seed)
-    except (RunError, ConfigError) as exc:
+    except (RunError, ConfigError, UsageError) as exc:
         print(f'ekf-vo-run: error: {exc}', file=sys.stderr)
         return 2
     if args.json is not None:

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from ..bridge.topics import transport_topic
+from ..cli import HelpFormatter, UsageError, check_writable, entry_point
 from .synth_scene import (TRAJECTORIES, Renderer, Scene, make_scene, trajectory_pose,
                           trajectory_stats, undistort_pixels)
 
@@ -229,54 +230,97 @@ def _dir_size(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob('*') if p.is_file())
 
 
+#: one line per trajectory of :data:`TRAJECTORIES`, for ``--help``
+TRAJECTORY_HELP = {
+    'walk': 'hand-held wander through the room: smooth in all 6 DoF, turning slowly',
+    'orbit': 'circle of radius 1.3 m at 1.5 m height, looking outward-forward at the walls',
+    'figure8': 'lemniscate 3 m x 2 m at 1.4 m height, heading loosely following the path',
+}
+#: fewest frames of a usable bag (the bootstrap needs two views)
+MIN_FRAMES = 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     """argparse parser of ``ekf-vo-synth``."""
+    epilog = 'trajectories (--trajectory):\n' + '\n'.join(
+        f'  {name:<8} {TRAJECTORY_HELP[name]}' for name in TRAJECTORIES)
     p = argparse.ArgumentParser(prog='ekf-vo-synth', description=__doc__.split('\n')[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                formatter_class=HelpFormatter, epilog=epilog)
     p.add_argument('out_bag', type=Path, help='output rosbag2 directory (must not exist)')
-    p.add_argument('--width', type=int, default=640)
-    p.add_argument('--height', type=int, default=480)
+    p.add_argument('--width', type=int, default=640, help='image width (px)')
+    p.add_argument('--height', type=int, default=480, help='image height (px)')
     p.add_argument('--fx', type=float, default=525.0,
                    help='focal length (px); fy = fx unless --fy')
-    p.add_argument('--fy', type=float, default=None)
+    p.add_argument('--fy', type=float, default=None, help='vertical focal length (px); default: --fx')
     p.add_argument('--rate', type=float, default=30.0, help='frame rate (Hz)')
-    p.add_argument('--frames', type=int, default=300)
-    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--frames', type=int, default=300,
+                   help=f'number of frames (at least {MIN_FRAMES})')
+    p.add_argument('--seed', type=int, default=0,
+                   help='seed of the room texture, trajectory phases and noise')
     p.add_argument('--trajectory', choices=TRAJECTORIES, default='walk',
-                   help='walk = smooth hand-held 6-DoF wander')
+                   help='camera path (listed below)')
     p.add_argument('--noise-px', type=float, default=2.0,
                    help='Gaussian intensity noise sigma (grey levels)')
     p.add_argument('--blur', type=float, default=0.0, help='motion-blur kernel length (px)')
     p.add_argument('--distortion', type=float, nargs=5, metavar=('K1', 'K2', 'P1', 'P2', 'K3'),
                    default=None, help='plumb_bob distortion applied to the images')
     p.add_argument('--supersample', type=int, default=1, help='anti-aliasing factor')
-    p.add_argument('--encoding', choices=('mono8', 'bgr8'), default='mono8')
+    p.add_argument('--encoding', choices=('mono8', 'bgr8'), default='mono8',
+                   help='image encoding: grey or colour')
     p.add_argument('--compressed', action='store_true',
                    help='also write /camera/image_raw/compressed')
     p.add_argument('--compressed-only', action='store_true',
                    help='write /camera/image_raw/compressed instead of /camera/image_raw')
-    p.add_argument('--compressed-format', choices=('jpeg', 'png'), default='jpeg')
-    p.add_argument('--jpeg-quality', type=int, default=90)
+    p.add_argument('--compressed-format', choices=('jpeg', 'png'), default='jpeg',
+                   help='format of the compressed images')
+    p.add_argument('--jpeg-quality', type=int, default=90, help='JPEG quality (1-100)')
     p.add_argument('--tum', type=Path, default=None, help='also write ground truth as TUM text')
     p.add_argument('--overwrite', action='store_true', help='replace an existing OUT_BAG')
     p.add_argument('--stats', action='store_true', help='print trajectory speed statistics')
-    p.add_argument('-q', '--quiet', action='store_true')
+    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar or summary')
     return p
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """UsageError for options that cannot make a usable bag, before anything is written."""
+    if args.frames < MIN_FRAMES:
+        raise UsageError(f'--frames must be at least {MIN_FRAMES}, got {args.frames}')
+    for option, value in (('--width', args.width), ('--height', args.height),
+                          ('--fx', args.fx), ('--fy', args.fy), ('--rate', args.rate),
+                          ('--supersample', args.supersample)):
+        if value is not None and not (value > 0 and math.isfinite(value)):
+            raise UsageError(f'{option} must be positive, got {value}')
+    for option, value in (('--noise-px', args.noise_px), ('--blur', args.blur)):
+        if not (value >= 0 and math.isfinite(value)):
+            raise UsageError(f'{option} must be >= 0, got {value}')
+    if not 1 <= args.jpeg_quality <= 100:
+        raise UsageError(f'--jpeg-quality must be in 1..100, got {args.jpeg_quality}')
+    if args.out_bag.exists() and not args.overwrite:
+        raise UsageError(f'{args.out_bag} exists (use --overwrite)')
+    if args.out_bag.exists() and not args.out_bag.is_dir():
+        raise UsageError(f'{args.out_bag} is a file, not a bag directory')
+    if not args.out_bag.exists():
+        check_writable(args.out_bag / 'metadata.yaml', 'OUT_BAG')
+    if args.tum is not None:
+        check_writable(args.tum, '--tum')
+
+
+@entry_point
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point ``ekf-vo-synth``."""
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format='%(levelname)s %(name)s: %(message)s')
+    try:
+        check_args(args)
+    except UsageError as exc:
+        print(f'ekf-vo-synth: error: {exc}', file=sys.stderr)
+        return 2
     cfg = SynthConfig(width=args.width, height=args.height, fx=args.fx, fy=args.fy,
                       rate=args.rate, frames=args.frames, seed=args.seed,
                       trajectory=args.trajectory, noise_px=args.noise_px, blur=args.blur,
                       distortion=tuple(args.distortion) if args.distortion else None,
                       supersample=args.supersample, encoding=args.encoding)
-    if args.out_bag.exists() and not args.overwrite:
-        print(f'error: {args.out_bag} exists (use --overwrite)', file=sys.stderr)
-        return 2
     if args.stats:
         print(trajectory_stats(cfg.trajectory, cfg.frames / cfg.rate, cfg.seed))
     res = write_bag(cfg, args.out_bag, raw=not args.compressed_only,
