@@ -1,4 +1,4 @@
-"""Issue 7: in-filter map refinement and multi-view bootstrap vs the hybrid default.
+"""Estimator extensions: in-filter map refinement and multi-view bootstrap vs the hybrid default.
 
 Four variants of the full pipeline (images in, no ground truth inside the estimator):
     default     bootstrap two_view,   map_refinement none     (docs/method.md §1)

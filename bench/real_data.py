@@ -1,4 +1,4 @@
-"""The core, offline, on the real sequences of ../shared/data (no ROS, no bag).
+"""The core, offline, on the developers' real sequences (no ROS, no bag).
 
 KITTI 06 frames 0-50: monocular bootstrap from the images (scale arbitrary), ATE after
 Sim(3) alignment. Middlebury dino: the paper's protocol, two-view bootstrap from the

@@ -1,4 +1,4 @@
-"""Our EKF on the exact inputs of the authors' EKFPnP (../shared/data/ekfpnp_synthetic_sigma3).
+"""Our EKF on the exact inputs of the authors' EKFPnP (the ekfpnp_synthetic_sigma3 test vector).
 
 Same observations, same initialisation (the reference's poses of frames 0 and 1, velocities
 from their difference), dt = 1 frame, and the reference's error metrics:

@@ -251,3 +251,19 @@ def test_ros1_bag_through_the_tools(small_bag: Path, tmp_path: Path) -> None:
     _fails_with(r, f'ekf-vo-convert: error: {ros1} is a ROS 1 bag: no conversion needed, '
                 'ekf-vo-run, ekf-vo-play and ekf-vo-eval read it as it is (ekf-vo-convert '
                 'reads dataset folders)')
+
+
+@pytest.mark.parametrize('node', ['vo_node', 'map_node', 'ekf_vo_nodes'])
+@pytest.mark.parametrize('content', [None, 'vo_node:\n  ros__parameters:\n    x: [1,\n'],
+                         ids=['missing', 'broken'])
+def test_node_with_a_bad_params_file(tmp_path, node, content):
+    params = tmp_path / 'params.yaml'
+    if content is not None:
+        params.write_text(content)
+    r = _run(node, '--ros-args', '--params-file', params,
+             env=ros_env(domain_id_for('test_cli_errors')))
+    assert r.returncode == 2, r
+    assert 'Traceback' not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f'{node}: error: '), r.stderr
+    assert "Couldn't parse params file" in lines[0] and str(params) in lines[0]

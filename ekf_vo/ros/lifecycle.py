@@ -10,12 +10,15 @@ executor and the nodes are destroyed, the context shuts down, and the process ex
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from typing import Callable, Sequence
 
 import rclpy
+import rclpy.logging
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy._rclpy_pybind11 import RCLError   # what rclpy.init raises on bad --ros-args
 from rclpy.signals import SignalHandlerOptions
 
 from ..config import ConfigError
@@ -24,12 +27,27 @@ from ..config import ConfigError
 SPIN_PERIOD_S = 0.1
 
 
+def _rcl_reason(exc: Exception) -> str:
+    """rcl's message without the C source locations it appends (', at file.c:123')."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return text.split(', at /')[0]
+
+
 def run_nodes(name: str, make_nodes: Callable[[], Sequence[Node]],
               args: list[str] | None = None, config_error_code: int = 2) -> int:
     """Build the nodes (after rclpy.init), spin them on one SingleThreadedExecutor until
     SIGINT, SIGTERM or an external shutdown, then stop them. Returns the exit code:
     0, or `config_error_code` when a parameter is invalid (logged as one line)."""
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    # rcl logs its own "Failed to parse global arguments" before raising: we say it once
+    rclpy.logging.set_logger_level('rcl', rclpy.logging.LoggingSeverity.FATAL)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except RCLError as exc:
+        # a bad --ros-args (missing or broken --params-file, bad remap): one line, exit 2
+        print(f'{name}: error: {_rcl_reason(exc)}', file=sys.stderr)
+        return 2
+    finally:
+        rclpy.logging.set_logger_level('rcl', rclpy.logging.LoggingSeverity.UNSET)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set())
                 for sig in (signal.SIGINT, signal.SIGTERM)}
