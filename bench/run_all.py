@@ -182,7 +182,8 @@ SUMMARY_ROWS = (
 
 def summary_rows(R: dict) -> list[list[str]]:
     """(figure, ours, paper / reference, verdict) for the printed summary."""
-    return [row for key, rows_of in SUMMARY_ROWS if R.get(key) for row in rows_of(R[key])]
+    return [row for key, rows_of in SUMMARY_ROWS if R.get(key) and 'skipped' not in R[key]
+            for row in rows_of(R[key])]
 
 
 def print_summary(rows: list[list[str]]) -> str:
@@ -793,7 +794,9 @@ Papers' figures are the papers' own (docs/method.md cites them). "EKF" is our hy
                 ('scaling', lambda: section_scaling(R['scaling'], quick)),
                 ('memory', lambda: section_memory(R['memory'], quick))]
     for name, build in builders:
-        if name in R:
+        if name in R and 'skipped' in R[name]:
+            parts.append(f'## {name}: skipped ({R[name]["skipped"]})\n\n')
+        elif name in R:
             parts.append(build() + '\n')
     path.write_text(''.join(parts), encoding='utf-8')
 

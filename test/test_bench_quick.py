@@ -105,3 +105,15 @@ def test_real_data_tabulated(quick_run):
         r = res['real_compare'][s]
         for e in ('ekf', 'iekf', 'epnp'):
             assert _finite(r[e]['ate_pct_path']['mean'], r[e]['pct_tracked']['mean'])
+
+
+def test_without_the_data_folder_the_data_sections_skip_and_the_run_succeeds(tmp_path,
+                                                                             monkeypatch):
+    """A user's fresh clone has no data folder: `make bench-quick` must still succeed."""
+    monkeypatch.setenv('EKF_VO_SHARED_DATA', str(tmp_path / 'no_data_here'))
+    out = tmp_path / 'bench'
+    proc = run_benchmark('run_all', '--quick', '--only', 'bunny', 'consistency',
+                         '--out', str(out), timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    report = (out / 'report.md').read_text()
+    assert '## bunny: skipped (' in report and 'Failed sections' not in report

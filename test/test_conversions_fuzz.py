@@ -157,7 +157,7 @@ def pointcloud_messages(draw):
         for name in names:
             datatype = draw(st.integers(1, 8))
             fields.append((name, draw(st.integers(0, 16)), datatype, draw(st.integers(1, 3))))
-        ends = [o + cv._POINTFIELD_DTYPES[d].itemsize * c for _, o, d, c in fields]
+        ends = [o + cv.POINTFIELD_DTYPES[d].itemsize * c for _, o, d, c in fields]
         point_step = max(ends, default=0) + draw(st.integers(0, 6))
         row_step = width * point_step + draw(st.integers(0, 7))
         n = row_step * height + draw(st.integers(0, 5))
@@ -209,7 +209,7 @@ def test_fuzz_pointcloud(sample, organized):
         assert col.shape == base + (() if f.count == 1 else (f.count,))
         assert col.dtype.isnative
         if h * w:  # compare the last point with a direct decode of its bytes
-            dt = np.dtype(cv._POINTFIELD_DTYPES[f.datatype])
+            dt = np.dtype(cv.POINTFIELD_DTYPES[f.datatype])
             dt = dt.newbyteorder('>' if msg.is_bigendian else '<')
             start = (h - 1) * msg.row_step + (w - 1) * msg.point_step + f.offset
             ref = np.frombuffer(raw[start:start + dt.itemsize * f.count], dtype=dt)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from ekf_vo.bridge.image import decode_image
 from ekf_vo.io import bag as bagio
 from ekf_vo.tools import convert, synth
 from ekf_vo.tools.run import run_bag
@@ -61,7 +62,7 @@ def _read_back(bag: Path) -> dict:
         out['stamps'].setdefault(topic, []).append(bagio.time_to_ns(msg.header.stamp))
         assert bagio.time_to_ns(msg.header.stamp) == log_ns
         if msgtype in (bagio.IMAGE, bagio.COMPRESSED_IMAGE):
-            out['images'].append(bagio.decode_image(msgtype, msg))
+            out['images'].append(decode_image(msgtype, msg))
             assert msg.header.frame_id == 'camera_optical'
         elif msgtype == bagio.CAMERA_INFO:
             out['infos'].append(msg)

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from ekf_vo.bridge.image import decode_image
 from ekf_vo.io import bag as bagio
 from ekf_vo.tools import synth
 
@@ -133,8 +134,8 @@ def test_bag_round_trip(tmp_path: Path) -> None:
             frames, by_topic['/camera/image_raw'], by_topic['/camera/image_raw/compressed'],
             by_topic['/camera/camera_info'], by_topic['/ground_truth/pose']):
         assert im_msg.encoding == 'mono8' and im_msg.header.frame_id == 'camera_optical'
-        assert np.array_equal(bagio.decode_image(mt, im_msg), img)
-        jpg = bagio.decode_image(bagio.COMPRESSED_IMAGE, cz)
+        assert np.array_equal(decode_image(mt, im_msg), img)
+        jpg = decode_image(bagio.COMPRESSED_IMAGE, cz)
         assert jpg.shape == img.shape and np.abs(jpg.astype(int) - img).mean() < 4
         assert np.allclose(np.asarray(ci.k).reshape(3, 3), cfg.K())
         assert np.allclose(np.asarray(ci.p).reshape(3, 4)[:, :3], cfg.K())
@@ -166,6 +167,6 @@ def test_cli_compressed_only_bgr(tmp_path: Path) -> None:
     topics = bagio.bag_topics(out)
     assert '/camera/image_raw' not in topics
     assert topics['/camera/image_raw/compressed'] == bagio.COMPRESSED_IMAGE
-    imgs = [bagio.decode_image(mt, m) for _, mt, _, m in
+    imgs = [decode_image(mt, m) for _, mt, _, m in
             bagio.iter_bag(out, ['/camera/image_raw/compressed'])]
     assert len(imgs) == 3 and imgs[0].shape == (240, 320, 3)

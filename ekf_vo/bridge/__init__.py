@@ -25,8 +25,6 @@ from .pointcloud2 import (POINTFIELD_DTYPES, pointcloud2_to_numpy, pointcloud2_t
                           points_to_pointcloud2)
 from .topics import CameraTopics, TopicError, select_camera_topics, transport_topic
 
-#: former private name of :data:`POINTFIELD_DTYPES` (the message fuzz test still reads it)
-_POINTFIELD_DTYPES = POINTFIELD_DTYPES
 
 __all__ = [
     'ConversionError', 'IMAGE', 'COMPRESSED_IMAGE', 'CAMERA_INFO', 'POSE_STAMPED',

@@ -34,13 +34,13 @@ from rosbags.typesys.store import Typestore
 from ..bridge.camera_info import camera_info_from_params
 from ..bridge.common import (CAMERA_INFO, COMPRESSED_IMAGE, IMAGE, POSE_STAMPED, ns_to_stamp,
                              stamp_to_ns)
-from ..bridge.image import decode_image, numpy_to_image
+from ..bridge.image import numpy_to_image
 from ..bridge.odometry import matrix_to_pose_stamped, pose_msg_to_matrix, quat_xyzw_to_matrix
 
 logger = logging.getLogger(__name__)
 
-#: message types (from the bridge) and the image decoder, for the readers of decoded bags
-__all__ = ['IMAGE', 'COMPRESSED_IMAGE', 'CAMERA_INFO', 'POSE_STAMPED', 'decode_image',
+#: message types (from the bridge), writers and readers
+__all__ = ['IMAGE', 'COMPRESSED_IMAGE', 'CAMERA_INFO', 'POSE_STAMPED',
            'typestore', 'ns_to_time', 'time_to_ns', 'make_header', 'image_msg',
            'compressed_msg', 'camera_info_msg', 'pose_stamped_msg', 'pose_to_matrix',
            'BagWriter', 'BagError', 'is_ros1_bag', 'bag_topics', 'topic_counts', 'read_raw',

@@ -81,7 +81,10 @@ def node_ros_args(bag: Path, params: Path) -> tuple[list[str], str, str]:
     from ..bridge.topics import select_camera_topics, transport_topic
     from ..io.bag import bag_topics
     camera = select_camera_topics(bag_topics(bag))
+    # the demo is a replay: every frame processed in order, the same figures on every run
+    # and equal to `ekf-vo-run` on the bag (docs/ros.md §8)
     ros_args = ['--params-file', str(params), '-p', 'use_sim_time:=true',
+                '-p', 'queue_policy:=all',
                 '-r', f'camera_info:={camera.info}', '-r', 'odom:=/odom',
                 '-p', f'image_transport:={camera.transport}',
                 '-r', f"{transport_topic('image', camera.transport)}:={camera.image}"]
