@@ -1,0 +1,101 @@
+"""How much of its own map the filter uses: the local-map baseline.
+
+Per tracking frame of the full pipeline (images in, monocular bootstrap, no ground truth):
+- track share: the fraction of the frame's KLT tracks that carry a map point;
+- found share: of the map points that the frame's pose puts inside the image (in front of
+  the camera, within the image bounds), the fraction that a track carries, i.e. that are
+  measured this frame. Points that left every track stay in the map but are never seen
+  again: that is what re-finding points by descriptor (the local map) would recover.
+  The pose is the EKF's after the update (the prior is not kept per frame); for points a
+  frame sees, both put them in the image almost always alike.
+- map size, for context.
+Sequences: the demo bag (compressed 640x480, rendered room) and KITTI 06 frames 0-50 when
+the developers' data folder is present.
+
+    python -m bench.map_usage [--quick] [--out DIR]
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ekf_vo.config import VoConfig
+from ekf_vo.core.stream import Rejection, VoStream
+from ekf_vo.tools.demo import load_demo_frames
+from .common import section_main, shared_data
+
+
+def frame_usage(stream: VoStream, res) -> tuple[float, float, int] | None:
+    """(track share, found share, map points in view) of one ok frame, or None."""
+    if isinstance(res, Rejection) or not res.ok or res.track_has_point is None \
+            or len(res.track_ids) == 0:
+        return None
+    vo = stream.vo
+    X = vo.map.X_world
+    if len(X) == 0:
+        return None
+    px, front, _ = vo.ekf.observe(X, with_jacobian=False)
+    in_image = front & vo.camera.in_image(vo.camera.distort(px))
+    n_view = int(np.count_nonzero(in_image))
+    tracked = vo.map.contains(res.track_ids) & res.track_has_point
+    tracked_ids = set(int(i) for i in res.track_ids[tracked])
+    ids_in_view = vo.map.ids[in_image]
+    n_found = sum(1 for i in ids_in_view if int(i) in tracked_ids)
+    return (float(np.mean(res.track_has_point)),
+            n_found / n_view if n_view else float('nan'), n_view)
+
+
+def run_sequence(frames, info, cfg: VoConfig) -> dict:
+    stream = VoStream(cfg, seed=0)
+    stream.set_camera(info)
+    rows = []
+    for stamp, gray in frames:
+        if stream.admit(stamp) is not None:
+            continue
+        row = frame_usage(stream, stream.process(gray, stamp))
+        if row is not None:
+            rows.append(row)
+    if not rows:
+        return {'skipped': 'no tracked frame'}
+    a = np.array(rows, dtype=float)
+    return {'frames_scored': len(rows), 'frames': len(frames),
+            'track_share_mean': float(np.nanmean(a[:, 0])),
+            'found_share_mean': float(np.nanmean(a[:, 1])),
+            'found_share_median': float(np.nanmedian(a[:, 1])),
+            'in_view_mean': float(np.mean(a[:, 2])),
+            'map_size_final': int(len(stream.vo.map))}
+
+
+def run(quick: bool = False, out: Path | None = None) -> dict:
+    info, frames = load_demo_frames()
+    res = {'demo': run_sequence(frames[:120] if quick else frames, info, VoConfig())}
+    folder = shared_data('kitti06_f0-50')
+    if folder is None:
+        res['kitti06'] = {'skipped': "KITTI 06 is not in the developers' data folder"}
+    else:
+        from ekf_vo.io.dataset import load_folder
+        data = load_folder(folder)
+        res['kitti06'] = run_sequence(list(data.frames()), data.camera, VoConfig())
+    return res
+
+
+def summarize(res: dict) -> None:
+    for name, r in res.items():
+        if 'skipped' in r:
+            print(f'{name}: skipped ({r["skipped"]})')
+            continue
+        print(f'{name}: {r["frames_scored"]}/{r["frames"]} frames scored; tracks with a map '
+              f'point {100 * r["track_share_mean"]:.0f} %; map points in view that are '
+              f'measured {100 * r["found_share_mean"]:.0f} % (median '
+              f'{100 * r["found_share_median"]:.0f} %) of {r["in_view_mean"]:.0f} in view; '
+              f'map {r["map_size_final"]} points at the end')
+
+
+def main(argv: list[str] | None = None) -> int:
+    return section_main(argv, __doc__, run, 'map_usage', summarize)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
