@@ -14,7 +14,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from ekf_vo import bridge as conv
 from ekf_vo.config import NodeConfig
 from ekf_vo.core.frames import optical_to_body_extrinsic
-from ekf_vo.ros.harness import Harness, NodeProcess, domain_id_for
+from ekf_vo.ros.harness import Harness, NodeProcess, domain_id_for, ros_env
 from ekf_vo.ros.player import play_bag
 from ekf_vo.tools.demo import demo_bag
 from ekf_vo.tools.run import run_bag
@@ -85,3 +85,39 @@ def test_replay_twice_under_load_is_identical_and_equals_the_offline_run(tmp_pat
     T_base_cam = optical_to_body_extrinsic(cfg.T_base_cam_xyz, cfg.T_base_cam_xyzw)
     T_odom_base = T_base_cam @ offline.est_T_world_cam @ np.linalg.inv(T_base_cam)
     assert np.allclose(T_odom_base[:, :3, 3], a[:, :3], rtol=0, atol=1e-9)
+
+
+def test_player_paced_by_odometry_never_outruns_a_live_node(tmp_path):
+    """`ekf-vo-play --pace-topic /odom` at 20x into vo_node with the live policy (latest,
+    queue of 2): the player waits for each frame's odometry, so the node drops nothing and
+    answers as many frames as the offline run does."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    bag = demo_bag()
+    node = NodeProcess('ekf_vo.ros.vo_node', [
+        '-p', 'image_transport:=compressed', '-p', 'reliable_qos:=true',
+        '-r', 'image:=/camera/image_raw', '-r', 'camera_info:=' + INFO, '-r', 'odom:=/odom'],
+        DOMAIN, tmp_path / 'vo_node.log')
+    h = Harness(DOMAIN)
+    try:
+        node.wait_for_output('vo_node ready')
+        reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        odom = h.record(Odometry, '/odom', reliable)
+        status = h.record(DiagnosticArray, '/vo_node/status', reliable)
+        player = subprocess.Popen(
+            [sys.executable, '-m', 'ekf_vo.ros.player', str(bag), '--rate', '20',
+             '--no-clock', '--topics', IMAGE, INFO, '--wait-for', '*',
+             '--pace-topic', '/odom', '--pace-timeout-s', '0.5'],
+            env=ros_env(DOMAIN), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # record while it plays (a recorder that is not spun keeps only its last 100)
+        assert h.spin_until(lambda: player.poll() is not None, 300.0), 'player hangs'
+        out, err = player.communicate()
+        assert player.returncode == 0, err
+        h.spin_for(1.5)
+    finally:
+        h.close()
+        assert node.stop() == 0, node.output()
+    values = {kv.key: kv.value for kv in status[-1].status[0].values}
+    assert int(values.get('dropped_behind', 0)) == 0, values
+    offline = run_bag(bag, image_topic=IMAGE, info_topic=INFO)
+    assert len(odom) >= offline.frames_ok - 3, (len(odom), offline.frames_ok, out)

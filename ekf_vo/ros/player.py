@@ -8,6 +8,12 @@ recorded log times divided by ``rate``. Before each message, ``/clock``
 With ``loop`` the bag restarts at its end and the clock jumps back (deliberately: it
 exercises the nodes' reset handling).
 
+Pacing by the node's progress (``pace_topic``): after each image the player waits until
+the odometry for that image's stamp (or a later one) has come back, at most
+``pace_timeout_s`` (frames without odometry: the bootstrap, a lost frame), and the rest of
+the bag's schedule shifts by the wait. A replay then never outruns the estimator, however
+loaded the machine, and ``rate`` only sets the top speed.
+
 Library use (tests, the demo)::
 
     stats = play_bag(node, 'bags/demo', rate=2.0)      # returns when done
@@ -24,7 +30,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 from ..cli import entry_point
 from ..io.bag import BagError, bag_topics, read_raw
@@ -104,7 +110,8 @@ def play_bag(node: Any, path: str | Path, rate: float = 1.0, topics: Iterable[st
              remap: Mapping[str, str] | None = None, clock: bool = True, loop: bool = False,
              stop_event: threading.Event | None = None, *, qos: str = 'reliable',
              start_paused_s: float = 0.0, wait_for: Iterable[str] | None = None,
-             wait_timeout_s: float = 10.0, ack_timeout_s: float = 2.0) -> dict[str, Any]:
+             wait_timeout_s: float = 10.0, ack_timeout_s: float = 2.0,
+             pace: Callable[[str, bytes], float] | None = None) -> dict[str, Any]:
     """Publish the bag at ``path`` from ``node``, paced by its log times / ``rate``.
 
     Args:
@@ -129,6 +136,9 @@ def play_bag(node: Any, path: str | Path, rate: float = 1.0, topics: Iterable[st
             play anyway).
         ack_timeout_s: At the end, wait up to this long per publisher until reliable
             subscribers acknowledged everything (0 disables).
+        pace: Called after each image is published with (msgtype, serialized bytes);
+            returns the seconds it waited, by which the schedule shifts
+            (:class:`OdometryPacer`).
 
     Returns:
         ``{'messages', 'per_topic' {published topic: count}, 'loops', 'bag_duration_s'
@@ -164,7 +174,8 @@ def play_bag(node: Any, path: str | Path, rate: float = 1.0, topics: Iterable[st
             progress.stopped = True
         wall_start = time.monotonic()
         while not progress.stopped:
-            played = _play_once(path, publishers, clock_pub, rate, stop_event, progress)
+            played = _play_once(path, publishers, clock_pub, rate, stop_event, progress,
+                                pace)
             if not loop or not played:
                 break
         wall_s = time.monotonic() - wall_start
@@ -173,13 +184,19 @@ def play_bag(node: Any, path: str | Path, rate: float = 1.0, topics: Iterable[st
     finally:
         for pub in all_pubs:
             node.destroy_publisher(pub)
+    waited_s = (wall_start if wall_start is not None else time.monotonic()) - pause_start
+    return _stats(progress, wall_s, skipped, waited_s, unmatched)
+
+
+def _stats(progress: '_Progress', wall_s: float, skipped: dict, waited_s: float,
+           unmatched: list[str]) -> dict[str, Any]:
+    """play_bag's result (see its docstring)."""
     bag_s = progress.bag_ns / _NS_PER_S
     return {'messages': progress.messages, 'per_topic': progress.per_topic,
             'loops': progress.loops, 'bag_duration_s': bag_s, 'wall_s': wall_s,
             'effective_rate': bag_s / wall_s if wall_s > 0 else float('nan'),
-            'stopped': progress.stopped, 'skipped_types': skipped,
-            'waited_s': (wall_start if wall_start is not None else time.monotonic())
-            - pause_start, 'unmatched': unmatched}
+            'stopped': progress.stopped, 'skipped_types': skipped, 'waited_s': waited_s,
+            'unmatched': unmatched}
 
 
 @dataclass
@@ -259,7 +276,8 @@ def _wait_for_subscribers(publishers: Mapping[str, Any], wait_for: Iterable[str]
 
 
 def _play_once(path: Path, publishers: Mapping[str, Any], clock_pub: Any, rate: float,
-               stop_event: threading.Event | None, progress: _Progress) -> bool:
+               stop_event: threading.Event | None, progress: _Progress,
+               pace: Callable[[str, bytes], float] | None = None) -> bool:
     """Publish the bag once from its start, paced by log time / ``rate``, updating
     ``progress``; False if the bag had no message to play."""
     from builtin_interfaces.msg import Time
@@ -267,7 +285,7 @@ def _play_once(path: Path, publishers: Mapping[str, Any], clock_pub: Any, rate: 
     progress.loops += 1
     first_ns = last_ns = None
     loop_start = time.monotonic()
-    for topic, _, stamp_ns, raw in read_raw(path, list(publishers)):
+    for topic, msgtype, stamp_ns, raw in read_raw(path, list(publishers)):
         if first_ns is None:
             first_ns = stamp_ns
         # Log times are sorted; max() guards against equal or odd stamps.
@@ -283,9 +301,51 @@ def _play_once(path: Path, publishers: Mapping[str, Any], clock_pub: Any, rate: 
         progress.per_topic[name] = progress.per_topic.get(name, 0) + 1
         progress.messages += 1
         last_ns = stamp_ns
+        if pace is not None and msgtype in _IMAGE_TYPES:
+            loop_start += pace(msgtype, raw)     # the schedule waits for the node
     if first_ns is not None and last_ns is not None:
         progress.bag_ns += last_ns - first_ns
     return first_ns is not None
+
+
+_IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
+
+
+class OdometryPacer:
+    """``pace`` for :func:`play_bag`: wait for the odometry of each image played.
+
+    Subscribes nav_msgs/Odometry on ``topic`` with ``node`` and spins the node on its own
+    executor while waiting (so the node must not be spun elsewhere)."""
+
+    def __init__(self, node: Any, topic: str, timeout_s: float) -> None:
+        from nav_msgs.msg import Odometry
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        self.timeout_s = float(timeout_s)
+        self.n_timeouts = 0
+        self._latest_ns = -1
+        node.create_subscription(Odometry, topic, self._on_odometry,
+                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        self._executor = SingleThreadedExecutor(context=node.context)
+        self._executor.add_node(node)
+
+    def _on_odometry(self, msg: Any) -> None:
+        from ..bridge import stamp_to_ns
+        self._latest_ns = max(self._latest_ns, stamp_to_ns(msg.header.stamp))
+
+    def __call__(self, msgtype: str, raw: bytes) -> float:
+        from rclpy.serialization import deserialize_message
+
+        from ..bridge import stamp_to_ns
+        stamp = stamp_to_ns(deserialize_message(raw, resolve_msg_class(msgtype)).header.stamp)
+        start = time.monotonic()
+        while self._latest_ns < stamp:
+            if time.monotonic() - start >= self.timeout_s:
+                self.n_timeouts += 1
+                break
+            self._executor.spin_once(timeout_sec=0.005)
+        return time.monotonic() - start
 
 
 def _wait_acked(publishers: Iterable[Any], timeout_s: float) -> None:
@@ -304,6 +364,8 @@ def _summary(path: str | Path, stats: Mapping[str, Any]) -> str:
     return (f"played {stats['messages']} messages on {len(stats['per_topic'])} topics from "
             f"{path} in {stats['wall_s']:.2f} s (bag {stats['bag_duration_s']:.2f} s, "
             f"{stats['loops']} loop(s)); effective rate {rate:.2f}x, {msg_rate:.1f} msg/s"
+            + (f"; {stats['pace_timeouts']} frame(s) without odometry in time"
+               if 'pace_timeouts' in stats else '')
             + (' [interrupted]' if stats['stopped'] else ''))
 
 
@@ -352,6 +414,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--no-clock', action='store_true', help='do not publish /clock')
     parser.add_argument('--qos', choices=('reliable', 'sensor'), default='reliable',
                         help='publisher QoS: reliable keep-last-100 (default) or sensor data')
+    parser.add_argument('--pace-topic', metavar='TOPIC',
+                        help="pace by the node's progress: after each image, wait for the "
+                             'odometry of its stamp on TOPIC (e.g. /odom); --rate then only '
+                             'caps the speed (default: pace by the bag times only)')
+    parser.add_argument('--pace-timeout-s', type=float, default=0.5,
+                        help='longest wait for one odometry (frames without one: the '
+                             'bootstrap, lost frames) (default 0.5 s)')
     return parser
 
 
@@ -371,12 +440,16 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     node = rclpy.create_node('ekf_vo_play')
+    pacer = OdometryPacer(node, args.pace_topic, args.pace_timeout_s) \
+        if args.pace_topic else None
     try:
         stats = play_bag(node, args.bag, rate=args.rate, topics=args.topics,
                          remap=parse_remaps(args.remap), clock=not args.no_clock,
                          loop=args.loop, stop_event=stop, qos=args.qos,
                          start_paused_s=args.start_paused_s, wait_for=args.wait_for,
-                         wait_timeout_s=args.wait_timeout_s)
+                         wait_timeout_s=args.wait_timeout_s, pace=pacer)
+        if pacer is not None:
+            stats['pace_timeouts'] = pacer.n_timeouts
     except PlayError as exc:
         print(f'ekf-vo-play: error: {exc}', file=sys.stderr)
         return 2
