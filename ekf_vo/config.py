@@ -26,11 +26,14 @@ class ConfigError(ValueError):
 
 def param(default: Any, doc: str, unit: str = '', lo: float | None = None,
           hi: float | None = None, choices: Iterable[str] | None = None,
-          group: str = '') -> Any:
-    """A dataclass field carrying its documentation, unit and valid range."""
+          group: str = '', read_only: bool = False) -> Any:
+    """A dataclass field carrying its documentation, unit and valid range. `read_only`:
+    fixed when a node starts (e.g. its subscriptions depend on it); a node refuses to
+    change it at run time."""
     return field(default=default, metadata={
         'doc': doc, 'unit': unit, 'lo': lo, 'hi': hi,
-        'choices': tuple(choices) if choices else None, 'group': group})
+        'choices': tuple(choices) if choices else None, 'group': group,
+        'read_only': read_only})
 
 
 class _Params:
@@ -242,10 +245,10 @@ class NodeConfig(_Params):
     """Parameters of the ROS edge (vo_node); the core never sees these."""
 
     image_transport: str = param('raw', 'Subscribe `image` (raw) or `image/compressed`.',
-                                 choices=('raw', 'compressed'), group='ros')
+                                 choices=('raw', 'compressed'), group='ros', read_only=True)
     reliable_qos: bool = param(
         False, 'Subscribe with reliable QoS instead of sensor-data (best effort) QoS.',
-        group='ros')
+        group='ros', read_only=True)
     odom_frame: str = param('odom', 'frame_id of the published odometry and map.',
                             group='ros')
     base_frame: str = param('base_link', 'child_frame_id of the odometry (the robot body).',
@@ -261,7 +264,7 @@ class NodeConfig(_Params):
         'all: replay; every frame is processed in arrival order, nothing is dropped '
         '(reliable keep-all subscription, images before the first CameraInfo wait for '
         'it); pace the player (ekf-vo-play --rate) so the queue stays short.',
-        choices=('latest', 'all'), group='ros')
+        choices=('latest', 'all'), group='ros', read_only=True)
     queue_size: int = param(
         2, 'queue_policy latest: frames waiting for the estimator; older ones are dropped '
         'and counted.', 'count', 1, 100, group='ros')
@@ -396,6 +399,8 @@ def describe(f: dataclasses.Field) -> str:
         extras.append(f'range: [{meta["lo"]}, {meta["hi"]}]')
     if meta.get('choices'):
         extras.append('choices: ' + ', '.join(meta['choices']))
+    if meta.get('read_only'):
+        extras.append('read-only: set at start')
     if extras:
         text += ' (' + '; '.join(extras) + ')'
     return text

@@ -267,3 +267,11 @@ def test_node_with_a_bad_params_file(tmp_path, node, content):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f'{node}: error: '), r.stderr
     assert "Couldn't parse params file" in lines[0] and str(params) in lines[0]
+
+
+def test_player_with_a_bad_params_file(tmp_path):
+    r = _run('ekf-vo-play', REPO / 'bags' / 'demo', '--ros-args', '--params-file',
+             tmp_path / 'nope.yaml', env=ros_env(domain_id_for('test_cli_errors')))
+    assert r.returncode == 2 and 'Traceback' not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('ekf-vo-play: error: '), r.stderr

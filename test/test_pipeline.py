@@ -125,3 +125,20 @@ def test_a_long_gap_resets_instead_of_extrapolating(sequence):
     assert vo.state == TrackingState.TRACKING
     r = vo.process(frames[30][1], frames[30][0] + 2_000_000_000)
     assert vo.n_resets == 1 and not r.ok
+
+
+def test_a_time_reset_is_not_lost_when_its_frame_is_dropped(sequence):
+    """A caller's queue may drop the very frame where time went back: the estimator still
+    resets on the first older frame it processes."""
+    camera, frames = sequence
+    stream = VoStream(VoConfig())
+    stream.set_camera(camera)
+    for stamp, img, _ in frames[:30]:
+        stream.admit(stamp)
+        stream.process(img, stamp)
+    assert stream.state == TrackingState.TRACKING
+    back = frames[29][0] - 3_000_000_000
+    assert stream.admit(back) is None                       # accepted, never processed
+    assert stream.admit(back + 33_000_000) is None
+    r = stream.process(frames[0][1], back + 33_000_000)
+    assert stream.n_resets == 1 and stream.n_requested_resets == 1 and not r.ok

@@ -13,6 +13,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ekf_vo import bridge as conv
 from ekf_vo.config import NodeConfig
+from ekf_vo.core import geometry as geo
 from ekf_vo.core.frames import optical_to_body_extrinsic
 from ekf_vo.ros.harness import Harness, NodeProcess, domain_id_for, ros_env
 from ekf_vo.ros.player import play_bag
@@ -85,6 +86,9 @@ def test_replay_twice_under_load_is_identical_and_equals_the_offline_run(tmp_pat
     T_base_cam = optical_to_body_extrinsic(cfg.T_base_cam_xyz, cfg.T_base_cam_xyzw)
     T_odom_base = T_base_cam @ offline.est_T_world_cam @ np.linalg.inv(T_base_cam)
     assert np.allclose(T_odom_base[:, :3, 3], a[:, :3], rtol=0, atol=1e-9)
+    # orientations: the node's quaternion xyzw against the offline rotation
+    R_node = np.stack([geo.quat_to_matrix(np.r_[q[3], q[:3]]) for q in a[:, 3:7]])
+    assert np.allclose(R_node, T_odom_base[:, :3, :3], rtol=0, atol=1e-9)
 
 
 def test_player_paced_by_odometry_never_outruns_a_live_node(tmp_path):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import threading
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -60,9 +61,12 @@ class VoStream:
         #: resets asked from outside the estimator (request_reset, time going back)
         self.n_requested_resets = 0
         self._resets_before = 0          # resets of estimators this stream replaced
-        self._last_stamp_ns: int | None = None
+        self._last_stamp_ns: int | None = None        # last admitted (arrival order)
+        self._last_processed_ns: int | None = None    # last run through the estimator
         self._pending_reset: str | None = None
-        self._reset_at_ns: int | None = None     # stamp of a frame after time went back
+        #: guards the inputs (calibration, stamps, resets) so a node's callbacks may call
+        #: in while its worker is inside the estimator, which runs outside this lock
+        self._lock = threading.Lock()
 
     # ------------------------------------------------------------------ inputs
     def set_camera(self, info: Mapping[str, Any] | PinholeCamera) -> bool:
@@ -71,69 +75,81 @@ class VoStream:
         CameraModelError or ValueError when unusable (the current camera stays)."""
         camera = info if isinstance(info, PinholeCamera) else \
             PinholeCamera.from_camera_info(info)
-        if camera.same_as(self.camera):
-            return False
-        if self.camera is not None:
-            self.n_camera_changes += 1
-            logger.info('calibration changed: restarting the estimator')
-        self.camera = camera
-        self._replace_estimator(VisualOdometry(self.cfg, camera, seed=self.seed))
-        return True
+        with self._lock:
+            if camera.same_as(self.camera):
+                return False
+            if self.camera is not None:
+                self.n_camera_changes += 1
+                logger.info('calibration changed: restarting the estimator')
+            self.camera = camera
+            self._replace_estimator(VisualOdometry(self.cfg, camera, seed=self.seed))
+            return True
 
     def set_config(self, cfg: VoConfig) -> None:
         """New estimator parameters: the estimator restarts with them."""
-        self.cfg = cfg.validate()
-        if self.camera is not None:
-            self._replace_estimator(VisualOdometry(self.cfg, self.camera, seed=self.seed))
+        with self._lock:
+            self.cfg = cfg.validate()
+            if self.camera is not None:
+                self._replace_estimator(VisualOdometry(self.cfg, self.camera,
+                                                       seed=self.seed))
 
     def admit(self, stamp_ns: int) -> Rejection | None:
         """Check a frame's stamp in ARRIVAL order (before any queue may drop frames).
-        None = accepted (a backwards jump also schedules a reset)."""
+        None = accepted. A jump far back is accepted and counted (time_resets); the
+        estimator resets when the first frame older than its last one is processed,
+        whichever frames a caller's queue drops in between."""
         stamp_ns = int(stamp_ns)
-        last = self._last_stamp_ns
-        if last is not None:
-            if stamp_ns == last:
-                return self._reject('duplicate_stamp', 'duplicate image stamp: dropped')
-            if stamp_ns < last:
-                if (last - stamp_ns) * 1e-9 <= TIME_RESET_S:
-                    return self._reject('out_of_order', 'out-of-order image stamp: dropped')
-                # the reset belongs to THIS frame, however many frames a caller's queue
-                # still holds from before the jump
-                self.counters['time_resets'] += 1
-                self._reset_at_ns = stamp_ns
-            elif (stamp_ns - last) * 1e-9 > FUTURE_JUMP_S:
-                return self._reject('future_stamp',
-                                    'image stamp jumps more than 1 h ahead: dropped')
-        self._last_stamp_ns = stamp_ns
-        return None
+        with self._lock:
+            last = self._last_stamp_ns
+            if last is not None:
+                if stamp_ns == last:
+                    return self._reject('duplicate_stamp', 'duplicate image stamp: dropped')
+                if stamp_ns < last:
+                    if (last - stamp_ns) * 1e-9 <= TIME_RESET_S:
+                        return self._reject('out_of_order',
+                                            'out-of-order image stamp: dropped')
+                    self.counters['time_resets'] += 1
+                elif (stamp_ns - last) * 1e-9 > FUTURE_JUMP_S:
+                    return self._reject('future_stamp',
+                                        'image stamp jumps more than 1 h ahead: dropped')
+            self._last_stamp_ns = stamp_ns
+            return None
 
     def request_reset(self, reason: str) -> None:
         """Drop the map and re-bootstrap before the next frame."""
-        self._pending_reset = reason
+        with self._lock:
+            self._pending_reset = reason
 
     def process(self, gray: np.ndarray, stamp_ns: int,
                 known_T_world_cam: np.ndarray | None = None
                 ) -> FrameResult | Rejection:
         """Run one admitted frame (grey uint8 HxW) through the estimator.
 
-        `known_T_world_cam`: only for the papers' ground-truth bootstrap (benchmarks)."""
-        if self.vo is None:
-            return self._reject('no_camera_info', 'image before any valid CameraInfo: '
-                                'skipped')
-        camera = self.camera
-        if gray.shape[:2] != (camera.height, camera.width):
-            return self._reject('size_mismatch', (
-                f'image {gray.shape[1]}x{gray.shape[0]} does not match the CameraInfo '
-                f'{camera.width}x{camera.height}: dropped'))
-        if self._reset_at_ns is not None and int(stamp_ns) == self._reset_at_ns:
-            self._reset_at_ns = None
-            self.vo.reset('time went backwards (looping bag or sim reset)')
-            self.n_requested_resets += 1
-        if self._pending_reset is not None:
-            self.vo.reset(self._pending_reset)
-            self._pending_reset = None
-            self.n_requested_resets += 1
-        return self.vo.process(gray, int(stamp_ns), known_T_world_cam)
+        `known_T_world_cam`: only for the papers' ground-truth bootstrap (benchmarks).
+        Only one thread may call this (a node's worker); the others may call the rest."""
+        stamp_ns = int(stamp_ns)
+        with self._lock:
+            vo, camera = self.vo, self.camera
+            if vo is None:
+                return self._reject('no_camera_info', 'image before any valid CameraInfo: '
+                                    'skipped')
+            if gray.shape[:2] != (camera.height, camera.width):
+                return self._reject('size_mismatch', (
+                    f'image {gray.shape[1]}x{gray.shape[0]} does not match the CameraInfo '
+                    f'{camera.width}x{camera.height}: dropped'))
+            reasons = []
+            if self._last_processed_ns is not None and stamp_ns < self._last_processed_ns:
+                reasons.append('time went backwards (looping bag or sim reset)')
+            if self._pending_reset is not None:
+                reasons.append(self._pending_reset)
+                self._pending_reset = None
+            for reason in reasons[:1]:
+                vo.reset(reason)
+                self.n_requested_resets += 1
+            self._last_processed_ns = stamp_ns
+        # the estimator runs outside the lock: calibration, stamps and reset requests keep
+        # coming in; a calibration change replaces the estimator for the next frame
+        return vo.process(gray, stamp_ns, known_T_world_cam)
 
     # ------------------------------------------------------------------ state
     @property
@@ -147,14 +163,17 @@ class VoStream:
     def restart(self) -> None:
         """Throw the estimator away (after an internal error); the next frame starts a
         fresh one with the current camera and parameters."""
-        if self.camera is not None:
-            self._replace_estimator(VisualOdometry(self.cfg, self.camera, seed=self.seed))
+        with self._lock:
+            if self.camera is not None:
+                self._replace_estimator(VisualOdometry(self.cfg, self.camera,
+                                                       seed=self.seed))
 
     def _replace_estimator(self, vo: VisualOdometry) -> None:
         if self.vo is not None:
             self._resets_before += self.vo.n_resets
         self.vo = vo
         self._pending_reset = None
+        self._last_processed_ns = None          # a new estimator has no past
 
     def _reject(self, key: str, text: str) -> Rejection:
         self.counters[key] += 1

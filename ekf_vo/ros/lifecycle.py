@@ -33,21 +33,28 @@ def _rcl_reason(exc: Exception) -> str:
     return text.split(', at /')[0]
 
 
+def init_rclpy(name: str, args: list[str] | None) -> bool:
+    """rclpy.init without its signal handlers. A bad --ros-args (missing or broken
+    --params-file, bad remap) is one line on stderr naming `name`; returns False then."""
+    # rcl logs its own "Failed to parse global arguments" before raising: we say it once
+    rclpy.logging.set_logger_level('rcl', rclpy.logging.LoggingSeverity.FATAL)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        return True
+    except RCLError as exc:
+        print(f'{name}: error: {_rcl_reason(exc)}', file=sys.stderr)
+        return False
+    finally:
+        rclpy.logging.set_logger_level('rcl', rclpy.logging.LoggingSeverity.UNSET)
+
+
 def run_nodes(name: str, make_nodes: Callable[[], Sequence[Node]],
               args: list[str] | None = None, config_error_code: int = 2) -> int:
     """Build the nodes (after rclpy.init), spin them on one SingleThreadedExecutor until
     SIGINT, SIGTERM or an external shutdown, then stop them. Returns the exit code:
     0, or `config_error_code` when a parameter is invalid (logged as one line)."""
-    # rcl logs its own "Failed to parse global arguments" before raising: we say it once
-    rclpy.logging.set_logger_level('rcl', rclpy.logging.LoggingSeverity.FATAL)
-    try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    except RCLError as exc:
-        # a bad --ros-args (missing or broken --params-file, bad remap): one line, exit 2
-        print(f'{name}: error: {_rcl_reason(exc)}', file=sys.stderr)
+    if not init_rclpy(name, args):
         return 2
-    finally:
-        rclpy.logging.set_logger_level('rcl', rclpy.logging.LoggingSeverity.UNSET)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set())
                 for sig in (signal.SIGINT, signal.SIGTERM)}

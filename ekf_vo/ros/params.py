@@ -86,7 +86,8 @@ def descriptor_for(f: dataclasses.Field) -> ParameterDescriptor:
     """ParameterDescriptor of field ``f``: description, range, choices."""
     meta = f.metadata
     default = _default(f)
-    desc = ParameterDescriptor(description=describe(f) if 'doc' in meta else f.name)
+    desc = ParameterDescriptor(description=describe(f) if 'doc' in meta else f.name,
+                               read_only=bool(meta.get('read_only', False)))
     lo, hi = meta.get('lo'), meta.get('hi')
     if isinstance(default, bool):
         pass

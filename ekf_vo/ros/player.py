@@ -10,9 +10,9 @@ exercises the nodes' reset handling).
 
 Pacing by the node's progress (``pace_topic``): after each image the player waits until
 the odometry for that image's stamp (or a later one) has come back, at most
-``pace_timeout_s`` (frames without odometry: the bootstrap, a lost frame), and the rest of
-the bag's schedule shifts by the wait. A replay then never outruns the estimator, however
-loaded the machine, and ``rate`` only sets the top speed.
+``pace_timeout_s`` (frames without odometry: the bootstrap, a lost frame); the next
+message still waits for its bag time / ``rate``. A replay then never outruns the
+estimator, however loaded the machine, and ``rate`` only sets the top speed.
 
 Library use (tests, the demo)::
 
@@ -34,6 +34,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 from ..cli import entry_point
 from ..io.bag import BagError, bag_topics, read_raw
+from .lifecycle import init_rclpy
 
 logger = logging.getLogger(__name__)
 
@@ -136,9 +137,8 @@ def play_bag(node: Any, path: str | Path, rate: float = 1.0, topics: Iterable[st
             play anyway).
         ack_timeout_s: At the end, wait up to this long per publisher until reliable
             subscribers acknowledged everything (0 disables).
-        pace: Called after each image is published with (msgtype, serialized bytes);
-            returns the seconds it waited, by which the schedule shifts
-            (:class:`OdometryPacer`).
+        pace: Called after each image is published with (msgtype, serialized bytes); it
+            may block until the node has processed it (:class:`OdometryPacer`).
 
     Returns:
         ``{'messages', 'per_topic' {published topic: count}, 'loops', 'bag_duration_s'
@@ -302,7 +302,9 @@ def _play_once(path: Path, publishers: Mapping[str, Any], clock_pub: Any, rate: 
         progress.messages += 1
         last_ns = stamp_ns
         if pace is not None and msgtype in _IMAGE_TYPES:
-            loop_start += pace(msgtype, raw)     # the schedule waits for the node
+            # wait for the node; the next message still waits for its own bag time, so
+            # a node that keeps up is played in real time / rate
+            pace(msgtype, raw)
     if first_ns is not None and last_ns is not None:
         progress.bag_ns += last_ns - first_ns
     return first_ns is not None
@@ -317,14 +319,17 @@ class OdometryPacer:
     Subscribes nav_msgs/Odometry on ``topic`` with ``node`` and spins the node on its own
     executor while waiting (so the node must not be spun elsewhere)."""
 
-    def __init__(self, node: Any, topic: str, timeout_s: float) -> None:
+    def __init__(self, node: Any, topic: str, timeout_s: float,
+                 stop_event: threading.Event | None = None) -> None:
         from nav_msgs.msg import Odometry
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
         self.timeout_s = float(timeout_s)
         self.n_timeouts = 0
-        self._latest_ns = -1
+        self._stop_event = stop_event
+        self._latest_ns = -1           # newest odometry stamp seen
+        self._last_image_ns = -1
         node.create_subscription(Odometry, topic, self._on_odometry,
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
         self._executor = SingleThreadedExecutor(context=node.context)
@@ -339,8 +344,13 @@ class OdometryPacer:
 
         from ..bridge import stamp_to_ns
         stamp = stamp_to_ns(deserialize_message(raw, resolve_msg_class(msgtype)).header.stamp)
+        if stamp < self._last_image_ns:
+            self._latest_ns = -1       # the bag looped: earlier answers do not count
+        self._last_image_ns = stamp
         start = time.monotonic()
         while self._latest_ns < stamp:
+            if self._stop_event is not None and self._stop_event.is_set():
+                break
             if time.monotonic() - start >= self.timeout_s:
                 self.n_timeouts += 1
                 break
@@ -427,7 +437,6 @@ def build_parser() -> argparse.ArgumentParser:
 @entry_point
 def main(argv: list[str] | None = None) -> int:
     import rclpy
-    from rclpy.signals import SignalHandlerOptions
 
     argv = sys.argv[1:] if argv is None else list(argv)
     own, ros_args = _split_ros_args(argv)
@@ -435,12 +444,13 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
     # Ctrl-C / SIGTERM stop the playback cleanly (and still print the summary) instead of
     # raising KeyboardInterrupt somewhere inside rclpy.
-    rclpy.init(args=['ekf-vo-play', *ros_args], signal_handler_options=SignalHandlerOptions.NO)
+    if not init_rclpy('ekf-vo-play', ['ekf-vo-play', *ros_args]):
+        return 2
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     node = rclpy.create_node('ekf_vo_play')
-    pacer = OdometryPacer(node, args.pace_topic, args.pace_timeout_s) \
+    pacer = OdometryPacer(node, args.pace_topic, args.pace_timeout_s, stop) \
         if args.pace_topic else None
     try:
         stats = play_bag(node, args.bag, rate=args.rate, topics=args.topics,

@@ -57,7 +57,7 @@ class VoNode(Node):
         self.T_base_cam = optical_to_body_extrinsic(self.node_cfg.T_base_cam_xyz,
                                                     self.node_cfg.T_base_cam_xyzw)
 
-        self._lock = threading.Lock()          # guards the stream's estimator / counters
+        self._lock = threading.Lock()          # guards node state shared with the worker
         self._queue: collections.deque = collections.deque()
         self._queue_cv = threading.Condition()
         self._stop = threading.Event()
@@ -195,9 +195,8 @@ class VoNode(Node):
             return
         with self._queue_cv:
             # stamps are checked in arrival order, before the queue may drop frames
-            with self._lock:
-                time_resets = self.stream.counters['time_resets']
-                rejected = self.stream.admit(stamp_ns)
+            time_resets = self.stream.counters['time_resets']
+            rejected = self.stream.admit(stamp_ns)      # VoStream guards its own inputs
             if rejected is not None:
                 self._warn(rejected.key, rejected.text)
                 return
@@ -212,9 +211,8 @@ class VoNode(Node):
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
-        with self._lock:
-            self.counters['reset_requests'] += 1
-            self.stream.request_reset('~/reset called')
+        self.counters['reset_requests'] += 1
+        self.stream.request_reset('~/reset called')
         response.success = True
         response.message = 'reset scheduled: the next frame starts a new bootstrap'
         return response
@@ -241,14 +239,16 @@ class VoNode(Node):
                     self._map_restarted = True
 
     def _process(self, stamp_ns: int, gray: np.ndarray, received: float) -> None:
-        with self._lock:
-            n_requested = self.stream.n_requested_resets
-            result = self.stream.process(gray, stamp_ns)
-            vo = self.stream.vo
-            restarted, self._map_restarted = self._map_restarted, False
+        # the estimator runs outside the node's lock: callbacks (CameraInfo, ~/reset,
+        # parameters) are never held up by a frame
+        n_requested = self.stream.n_requested_resets
+        result = self.stream.process(gray, stamp_ns)
+        vo = self.stream.vo
         if isinstance(result, Rejection):
             self._warn(result.key, result.text)
             return
+        with self._lock:
+            restarted, self._map_restarted = self._map_restarted, False
         self._log_state_change(result)
         if restarted or self.stream.n_requested_resets != n_requested:
             # a new map: odometry continues, but map_node and ~/path start again
