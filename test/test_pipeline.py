@@ -97,14 +97,20 @@ def test_bad_frames_are_skipped_without_losing_the_track(sequence):
     assert stream.counters == {'duplicate_stamp': 1, 'out_of_order': 1, 'size_mismatch': 1}
 
 
-def test_time_going_backwards_resets_and_a_new_calibration_restarts(sequence):
-    camera, frames = sequence
+def _tracking_stream(camera, frames) -> VoStream:
+    """A stream fed `frames` through its front door, tracking at the end."""
     stream = VoStream(VoConfig())
     stream.set_camera(camera)
-    for stamp, img, _ in frames[:30]:
+    for stamp, img, _ in frames:
         stream.admit(stamp)
         stream.process(img, stamp)
     assert stream.state == TrackingState.TRACKING
+    return stream
+
+
+def test_time_going_backwards_resets_and_a_new_calibration_restarts(sequence):
+    camera, frames = sequence
+    stream = _tracking_stream(camera, frames[:30])
     stamp0, img0 = frames[29][0] - 2_000_000_000, frames[0][1]
     assert stream.admit(stamp0) is None                 # looped: 2 s behind
     r = stream.process(img0, stamp0)
@@ -131,12 +137,7 @@ def test_a_time_reset_is_not_lost_when_its_frame_is_dropped(sequence):
     """A caller's queue may drop the very frame where time went back: the estimator still
     resets on the first older frame it processes."""
     camera, frames = sequence
-    stream = VoStream(VoConfig())
-    stream.set_camera(camera)
-    for stamp, img, _ in frames[:30]:
-        stream.admit(stamp)
-        stream.process(img, stamp)
-    assert stream.state == TrackingState.TRACKING
+    stream = _tracking_stream(camera, frames[:30])
     back = frames[29][0] - 3_000_000_000
     assert stream.admit(back) is None                       # accepted, never processed
     assert stream.admit(back + 33_000_000) is None

@@ -38,15 +38,22 @@ def _odometry_rows(msgs: list[Odometry]) -> tuple[np.ndarray, np.ndarray]:
     return np.array(stamps, np.int64), np.array(rows, dtype=np.float64).reshape(-1, 79)
 
 
+def _start_vo_node(tmp_path, *params: str) -> NodeProcess:
+    """vo_node on the demo bag's compressed topics (plus `-p` params), once ready."""
+    args = ['-p', 'image_transport:=compressed', '-r', 'image:=/camera/image_raw',
+            '-r', 'camera_info:=' + INFO, '-r', 'odom:=/odom']
+    for p in params:
+        args += ['-p', p]
+    node = NodeProcess('ekf_vo.ros.vo_node', args, DOMAIN, tmp_path / 'vo_node.log')
+    node.wait_for_output('vo_node ready')
+    return node
+
+
 def _replay(tmp_path, bag) -> tuple[np.ndarray, np.ndarray]:
     tmp_path.mkdir()
-    node = NodeProcess('ekf_vo.ros.vo_node', [
-        '-p', 'queue_policy:=all', '-p', 'image_transport:=compressed',
-        '-r', 'image:=/camera/image_raw', '-r', 'camera_info:=' + INFO, '-r', 'odom:=/odom'],
-        DOMAIN, tmp_path / 'vo_node.log')
+    node = _start_vo_node(tmp_path, 'queue_policy:=all')
     h = Harness(DOMAIN)
     try:
-        node.wait_for_output('vo_node ready')
         odom = h.record(Odometry, '/odom', QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
                                                       history=HistoryPolicy.KEEP_ALL))
         stats = play_bag(h.node, bag, rate=1.0, topics=[IMAGE, INFO], clock=False,
@@ -98,13 +105,9 @@ def test_player_paced_by_odometry_never_outruns_a_live_node(tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray
 
     bag = demo_bag()
-    node = NodeProcess('ekf_vo.ros.vo_node', [
-        '-p', 'image_transport:=compressed', '-p', 'reliable_qos:=true',
-        '-r', 'image:=/camera/image_raw', '-r', 'camera_info:=' + INFO, '-r', 'odom:=/odom'],
-        DOMAIN, tmp_path / 'vo_node.log')
+    node = _start_vo_node(tmp_path, 'reliable_qos:=true')
     h = Harness(DOMAIN)
     try:
-        node.wait_for_output('vo_node ready')
         reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         odom = h.record(Odometry, '/odom', reliable)
         status = h.record(DiagnosticArray, '/vo_node/status', reliable)
