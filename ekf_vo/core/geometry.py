@@ -20,6 +20,15 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrices (n,3,3) of vectors (n,3): skew_batch(v)[i] @ w = v[i] x w."""
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
+
+
 def quat_normalize(q_wxyz: np.ndarray) -> np.ndarray:
     """Unit quaternion with w >= 0 (the sign is irrelevant for a rotation)."""
     q = np.asarray(q_wxyz, dtype=float)
@@ -162,3 +171,14 @@ def invert_T(T: np.ndarray) -> np.ndarray:
 def transform_points(T: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Apply a 4x4 rigid transform to (N,3) points."""
     return X @ T[:3, :3].T + T[:3, 3]
+
+
+def rotvecs_to_matrices(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices (k,3,3) of rotation vectors (k,3) (vectorised Rodrigues)."""
+    theta = np.linalg.norm(w, axis=1)
+    small = theta < 1e-12
+    t = np.where(small, 1.0, theta)
+    Kx = skew_batch(w / t[:, None])
+    s = np.where(small, 0.0, np.sin(theta))[:, None, None]
+    c = np.where(small, 0.0, 1.0 - np.cos(theta))[:, None, None]
+    return np.eye(3)[None] + s * Kx + c * (Kx @ Kx)

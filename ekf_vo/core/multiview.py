@@ -44,21 +44,6 @@ _MAX_PNP_FAILURES = 3
 
 
 # ---------------------------------------------------------------------- bundle adjustment
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (k,3,3) of rotation vectors (k,3) (vectorised Rodrigues)."""
-    theta = np.linalg.norm(w, axis=1)
-    small = theta < 1e-12
-    t = np.where(small, 1.0, theta)
-    k = w / t[:, None]
-    Kx = np.zeros((len(w), 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2] = -k[:, 2], k[:, 1]
-    Kx[:, 1, 0], Kx[:, 1, 2] = k[:, 2], -k[:, 0]
-    Kx[:, 2, 0], Kx[:, 2, 1] = -k[:, 1], k[:, 0]
-    s = np.where(small, 0.0, np.sin(theta))[:, None, None]
-    c = np.where(small, 0.0, 1.0 - np.cos(theta))[:, None, None]
-    return np.eye(3)[None] + s * Kx + c * (Kx @ Kx)
-
-
 @dataclass
 class BundleResult:
     """Output of `bundle_adjust`: refined poses (k,4,4) T_world_cam, points (m,3),
@@ -148,7 +133,7 @@ def bundle_adjust(T_world_cam: np.ndarray, X_world: np.ndarray, cam_idx: np.ndar
             rest = p[5:n_cam].reshape(k - 2, 6)
             dtheta[2:] = rest[:, :3]
             C[2:] = rest[:, 3:]
-        R_cw = _rodrigues(dtheta) @ R_cw0
+        R_cw = geo.rotvecs_to_matrices(dtheta) @ R_cw0
         return R_cw, C, p[n_cam:].reshape(m, 3)
 
     def project(p: np.ndarray) -> np.ndarray:

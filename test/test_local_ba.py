@@ -1,0 +1,106 @@
+"""Windowed bundle adjustment (core/local_ba.py): Jacobian, convergence, honest covariances."""
+import numpy as np
+
+from ekf_vo.core import geometry as geo
+from ekf_vo.core.local_ba import WindowProblem, _Window, adjust_window, point_covariances
+
+K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+
+
+def _scene(rng, n_kf=6, n_pts=200):
+    """Keyframes moving forward along z past points 4-12 units ahead; every point seen
+    by every keyframe (ideal pixels), the truth and the problem with noisy inputs."""
+    T = []
+    for k in range(n_kf):
+        R = geo.rotvecs_to_matrices(np.array([[0.0, 0.02 * k, 0.0]]))[0]
+        T.append(geo.make_T(R, np.array([0.3 * k, 0.0, 0.5 * k])))
+    T = np.stack(T)
+    X = np.column_stack((rng.uniform(-4, 4, n_pts), rng.uniform(-3, 3, n_pts),
+                         rng.uniform(7, 15, n_pts)))
+    cam_idx = np.repeat(np.arange(n_kf), n_pts)
+    pt_idx = np.tile(np.arange(n_pts), n_kf)
+    px = np.concatenate([(X @ geo.invert_T(Tk)[:3, :3].T + geo.invert_T(Tk)[:3, 3])
+                         for Tk in T])
+    px = px[:, :2] / px[:, 2:] @ K[:2, :2].T + K[:2, 2]
+    return T, X, cam_idx, pt_idx, px
+
+
+def _perturbed(T, rng, fixed, pos_sigma=0.02, rot_sigma=0.003):
+    out = T.copy()
+    for k in np.flatnonzero(~fixed):
+        dR = geo.rotvecs_to_matrices(rng.normal(0, rot_sigma, (1, 3)))[0]
+        out[k, :3, :3] = dR @ T[k, :3, :3]
+        out[k, :3, 3] += rng.normal(0, pos_sigma, 3)
+    return out
+
+
+def test_the_normal_equations_match_finite_differences_of_the_cost():
+    """The gradient of the Gauss-Newton system is the derivative of the robust cost."""
+    rng = np.random.default_rng(0)
+    T, X, ci, pi, px = _scene(rng, n_kf=4, n_pts=20)
+    fixed = np.array([True, True, False, False])
+    win = _Window(WindowProblem(_perturbed(T, rng, fixed), fixed, X + 0.1, ci, pi, px),
+                  K, 1.0, huber_px=3.0)
+    ne = win.normal_equations()
+    assert np.isclose(ne.cost, win.cost())
+    grad = np.concatenate((ne.gc, ne.gp.ravel()))
+    num = np.zeros_like(grad)
+    n_cam = win.nc
+    for j in range(len(grad)):
+        step = []
+        for sign in (1, -1):
+            saved = win.state()
+            d_cam, d_pts = np.zeros(n_cam), np.zeros((len(X), 3))
+            if j < n_cam:
+                d_cam[j] = sign * 1e-6
+            else:
+                d_pts.ravel()[j - n_cam] = sign * 1e-6
+            win.apply(d_cam, d_pts)
+            step.append(win.cost())
+            win.restore(saved)
+        num[j] = (step[0] - step[1]) / 2e-6
+    assert np.max(np.abs(grad - num)) < 1e-4 * max(1.0, np.max(np.abs(num)))
+
+
+def test_adjustment_recovers_the_window_and_its_points():
+    rng = np.random.default_rng(1)
+    T, X, ci, pi, px = _scene(rng)
+    fixed = np.zeros(len(T), bool)
+    fixed[:2] = True
+    noisy = px + rng.normal(0, 0.5, px.shape)
+    X0 = X + rng.normal(0, 0.05, X.shape)
+    sol = adjust_window(WindowProblem(_perturbed(T, rng, fixed), fixed, X0, ci, pi, noisy),
+                        K, sigma_px=0.5, huber_px=1.0, max_iterations=30)
+    # the 2-D error of sigma 0.5 px per axis: rms 0.5 sqrt(2), less the fitted dof
+    assert sol.rms_after_px < 0.5 * np.sqrt(2) < np.sqrt(np.mean(sol.err_before_px ** 2))
+    pos_err = np.linalg.norm(sol.T_world_cam[:, :3, 3] - T[:, :3, 3], axis=1)
+    assert np.all(pos_err[:2] == 0)                        # the gauge stays put
+    assert np.max(pos_err) < 0.01
+    assert np.median(np.linalg.norm(sol.X_world - X, axis=1)) < \
+        0.75 * np.median(np.linalg.norm(X0 - X, axis=1))
+
+
+def test_point_covariances_are_consistent():
+    """NEES of the refined points against the truth over noise draws: 3 dof -> mean ~3."""
+    T, X, ci, pi, px = _scene(np.random.default_rng(2), n_pts=60)
+    fixed = np.zeros(len(T), bool)
+    fixed[:2] = True
+    nees = []
+    for seed in range(20):
+        rng = np.random.default_rng(100 + seed)
+        noisy = px + rng.normal(0, 1.0, px.shape)
+        sol = adjust_window(WindowProblem(_perturbed(T, rng, fixed), fixed,
+                                          X + rng.normal(0, 0.05, X.shape), ci, pi, noisy),
+                            K, sigma_px=1.0, huber_px=100.0, max_iterations=50)
+        e = sol.X_world - X
+        nees.append(np.einsum('mi,mij,mj->m', e, np.linalg.inv(sol.X_cov), e))
+    mean = float(np.mean(nees))
+    assert 2.2 < mean < 4.0, mean
+
+
+def test_two_view_point_covariance_grows_with_depth():
+    T_a = np.eye(4)
+    T_b = geo.make_T(np.eye(3), np.array([-1.0, 0.0, 0.0]))      # camera 1 unit to the right
+    X = np.array([[0.5, 0.0, 5.0], [0.5, 0.0, 20.0]])
+    cov = point_covariances(X, [T_a, T_b], K, 1.0)
+    assert cov[1, 2, 2] > 10 * cov[0, 2, 2] > 0
