@@ -184,6 +184,49 @@ class VoConfig(_Params):
         3, 'Remove a map point after this many consecutive outlier verdicts.', 'count', 1,
         1000, group='map')
 
+    # ---- local map: keyframes, windowed adjustment (ekf_vo/core/local_map.py) ----
+    local_map: bool = param(
+        True, 'Keyframes and a windowed bundle adjustment that refines the map points and '
+        'the keyframe poses in a worker thread (docs/method.md §12); off = points are '
+        'triangulated once and never refined.', group='local_map')
+    keyframe_min_covisibility: float = param(
+        0.7, 'A frame becomes a keyframe when fewer than this share of the last keyframe\'s '
+        'map points are still tracked.', '', 0.0, 1.0, group='local_map')
+    keyframe_max_baseline_ratio: float = param(
+        0.1, 'A frame becomes a keyframe when its distance to the last keyframe exceeds '
+        'this share of the median depth of the map points it tracks.', '', 1e-3, 10.0,
+        group='local_map')
+    keyframe_max_rotation_deg: float = param(
+        10.0, 'A frame becomes a keyframe when it has turned this much since the last one.',
+        'deg', 0.1, 180.0, group='local_map')
+    ba_window_keyframes: int = param(
+        6, 'Keyframes in the adjusted window (the newest ones).', 'count', 3, 50,
+        group='local_map')
+    ba_fixed_keyframes: int = param(
+        2, 'Oldest keyframes of the window held fixed: they fix position, orientation and '
+        'scale (a monocular gauge needs two).', 'count', 2, 10, group='local_map')
+    ba_min_parallax_deg: float = param(
+        2.0, 'Only points whose rays from the window\'s keyframes span this angle are '
+        'adjusted.', 'deg', 0.0, 45.0, group='local_map')
+    ba_max_iterations: int = param(
+        10, 'Levenberg-Marquardt iterations per adjustment.', 'count', 1, 100,
+        group='local_map')
+    ba_huber_px: float = param(
+        2.0, 'Width of the Huber loss of the adjustment (larger errors weigh linearly).',
+        'px', 0.1, 50.0, group='local_map')
+    ba_outlier_px: float = param(
+        3.0, 'After an adjustment, a point whose median reprojection error over its '
+        'keyframes exceeds this is culled.', 'px', 0.1, 50.0, group='local_map')
+    ba_apply_after_frames: int = param(
+        2, 'An adjustment started at a keyframe is applied before the update of the frame '
+        'this many frames later (waiting for it if it is not done: results do not depend '
+        'on timing).', 'frames', 1, 100, group='local_map')
+    map_point_uncertainty: bool = param(
+        False, 'Add each map point\'s covariance (triangulation or adjustment), projected '
+        'into the image, to its measurement noise (docs/method.md §12.3). Off by default: '
+        'per-point independent noise ignores the error the points share (bench.local_map).',
+        group='local_map')
+
     # ---- in-filter map refinement (ekf_vo/core/point_filter.py) ----
     map_refinement: str = param(
         'none', 'none: new points are triangulated once (hybrid, docs/method.md §1); '

@@ -143,3 +143,26 @@ def test_a_time_reset_is_not_lost_when_its_frame_is_dropped(sequence):
     assert stream.admit(back + 33_000_000) is None
     r = stream.process(frames[0][1], back + 33_000_000)
     assert stream.n_resets == 1 and stream.n_requested_resets == 1 and not r.ok
+
+
+def test_the_local_map_adjusts_windows_deterministically(sequence):
+    """local_map on (docs/method.md §12): keyframes are made, adjustments run in the
+    worker and are applied, the map points get covariances, and two runs agree exactly
+    (an adjustment is applied at a fixed frame, whatever the worker's timing)."""
+    camera, frames = sequence
+    runs = [run(camera, frames, local_map=True, map_point_uncertainty=True)
+            for _ in range(2)]
+    (vo, results), (_, again) = runs
+    stats = vo.local_map.stats
+    assert stats.n_keyframes >= 5 and stats.n_runs >= 3
+    assert 0 < stats.last_rms_px < 2.0
+    ev = ate_pct(frames, results)
+    assert ev.pct_tracked >= 90.0 and ev.ate_sim3_pct_of_path < 3.0
+    assert vo.n_resets == 0
+    cov = vo.map.covariances(vo.map.ids)
+    assert np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov)[:, -1] > 0)
+    for a, b in zip(results, again):
+        assert a.ok == b.ok
+        if a.ok:
+            np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
+    vo.local_map.close()

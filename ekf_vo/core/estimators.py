@@ -36,6 +36,15 @@ class FrameMatches:
     X_map: np.ndarray                 #: (a,3) their fixed world positions
     z_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  #: (b,2)
     point_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  #: (b,)
+    #: (a,) pixel std of each map measurement (pixel noise + the point's own uncertainty,
+    #: docs/method.md §12.3); None = pixel_sigma_px for all
+    sigma_map: np.ndarray | None = None
+
+    def map_sigmas(self, pixel_sigma_px: float) -> np.ndarray:
+        """(a,) pixel std of the map measurements."""
+        if self.sigma_map is None:
+            return np.full(len(self.X_map), float(pixel_sigma_px))
+        return np.asarray(self.sigma_map, float)
 
 
 @dataclass
@@ -60,7 +69,8 @@ class EkfEstimator:
     def update(self, matches: FrameMatches, rng: np.random.Generator) -> UpdateOutcome:
         model = ReprojectionModel.of_map_points(self.ekf.intrinsics, matches.X_map)
         x, P, out = robust_update(self.ekf.x, self.ekf.P, matches.z_map, model,
-                                  self.cfg.pixel_sigma_px, rng, self.settings)
+                                  matches.map_sigmas(self.cfg.pixel_sigma_px), rng,
+                                  self.settings)
         self.ekf.x, self.ekf.P, self.ekf.last_update = x, P, out.stats
         return UpdateOutcome(out.inliers, np.zeros(0, bool))
 
@@ -83,8 +93,9 @@ class JointEstimator(EkfEstimator):
         z = np.concatenate((np.asarray(matches.z_map, float).reshape(-1, 2),
                             np.asarray(matches.z_points, float).reshape(-1, 2)))
         x, P = pts.joint(self.ekf)
-        x, P, out = robust_update(x, P, z, model, self.cfg.pixel_sigma_px, rng,
-                                  self.settings)
+        sigma = np.concatenate((matches.map_sigmas(self.cfg.pixel_sigma_px),
+                                np.full(len(matches.z_points), self.cfg.pixel_sigma_px)))
+        x, P, out = robust_update(x, P, z, model, sigma, rng, self.settings)
         pts.set_joint(self.ekf, x, P)
         self.ekf.last_update = out.stats
         a = len(matches.X_map)

@@ -6,6 +6,8 @@ map after their track ends (they are still part of the published map) until cull
 - after `cull_after_misses` consecutive outlier verdicts (a bad triangulation or a track
   that slid onto another surface),
 - or, when the map exceeds `max_points`, the longest-unseen landmarks first.
+Each landmark carries a 3x3 covariance of its position (triangulation or the local map's
+adjustment, docs/method.md §12.3); zero means "treated as exact".
 Arrays are kept in a dict of id -> row with numpy storage so lookups are vectorised.
 """
 from __future__ import annotations
@@ -41,6 +43,7 @@ class LandmarkMap:
         cap = 256
         self._ids = np.zeros(cap, np.int64)
         self._X = np.zeros((cap, 3))
+        self._cov = np.zeros((cap, 3, 3))
         self._n_obs = np.zeros(cap, np.int32)
         self._misses = np.zeros(cap, np.int32)
         self._last_seen = np.zeros(cap, np.int64)
@@ -74,14 +77,19 @@ class LandmarkMap:
             out = np.zeros(new, arr.dtype)
             out[:cap] = arr
             setattr(self, name, out)
-        X = np.zeros((new, 3))
-        X[:cap] = self._X
-        self._X = X
+        for name in ('_X', '_cov'):
+            arr = getattr(self, name)
+            out = np.zeros((new,) + arr.shape[1:])
+            out[:cap] = arr
+            setattr(self, name, out)
 
     def add(self, ids: np.ndarray, X_world: np.ndarray, frame_index: int,
-            n_obs: int = 2) -> None:
-        """Insert new landmarks (ids already present are overwritten)."""
-        for lid, X in zip(np.asarray(ids, np.int64), np.asarray(X_world, float)):
+            n_obs: int = 2, cov: np.ndarray | None = None) -> None:
+        """Insert new landmarks (ids already present are overwritten); `cov` (n,3,3)
+        their position covariances (None: zero)."""
+        ids = np.asarray(ids, np.int64)
+        covs = np.zeros((len(ids), 3, 3)) if cov is None else np.asarray(cov, float)
+        for lid, X, C in zip(ids, np.asarray(X_world, float), covs):
             lid = int(lid)
             row = self._row.get(lid)
             if row is None:
@@ -91,6 +99,7 @@ class LandmarkMap:
                 self._row[lid] = row
                 self._ids[row] = lid
             self._X[row] = X
+            self._cov[row] = C
             self._n_obs[row] = n_obs
             self._misses[row] = 0
             self._last_seen[row] = frame_index
@@ -103,6 +112,24 @@ class LandmarkMap:
         rows = np.array([self._row.get(int(i), -1) for i in ids], dtype=np.int64)
         mask = rows >= 0
         return mask, self._X[rows[mask]]
+
+    def covariances(self, ids: np.ndarray) -> np.ndarray:
+        """Position covariances (n,3,3) of landmarks `ids` (all must be in the map)."""
+        rows = np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+        return self._cov[rows]
+
+    def refine(self, ids: np.ndarray, X_world: np.ndarray, cov: np.ndarray) -> int:
+        """Move landmarks to refined positions with new covariances (the local map's
+        adjustment); ids no longer in the map are skipped. Returns how many moved."""
+        n = 0
+        for lid, X, C in zip(np.asarray(ids, np.int64), X_world, cov):
+            row = self._row.get(int(lid))
+            if row is None:
+                continue
+            self._X[row], self._cov[row] = X, C
+            self._changed.add(int(lid))
+            n += 1
+        return n
 
     def contains(self, ids: np.ndarray) -> np.ndarray:
         return np.array([int(i) in self._row for i in ids], dtype=bool)
@@ -130,7 +157,8 @@ class LandmarkMap:
             last = self._size - 1
             if row != last:
                 moved = int(self._ids[last])
-                for arr in (self._ids, self._X, self._n_obs, self._misses, self._last_seen):
+                for arr in (self._ids, self._X, self._cov, self._n_obs, self._misses,
+                            self._last_seen):
                     arr[row] = arr[last]
                 self._row[moved] = row
             self._size -= 1

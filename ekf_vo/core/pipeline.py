@@ -30,8 +30,11 @@ from .camera import PinholeCamera
 from .ekf import POS, VEL, CameraEKF, FilterError
 from .estimators import FrameMatches, make_estimator
 from .features import FeatureTracker, Tracks
+from .local_ba import point_covariances
+from .local_map import LocalMapper
 from .map import LandmarkMap
 from .multiview import MultiViewBootstrap
+from .observation import projected_variance_px2
 from .point_filter import PointFilter
 from .triangulation import triangulate_points
 
@@ -97,6 +100,8 @@ class VisualOdometry:
             if cfg.bootstrap == 'multi_view' else None
         self.ekf = CameraEKF(camera.K)
         self.map = LandmarkMap(cfg.max_map_points, cfg.cull_after_misses)
+        # keyframes + windowed adjustment (docs/method.md §12); None = points never refined
+        self.local_map = LocalMapper(cfg, camera.K) if cfg.local_map else None
         self.rng = np.random.default_rng(seed)
         # in-filter map refinement (docs/method.md §8); None = the hybrid default
         self.points: PointFilter | None = None
@@ -114,6 +119,8 @@ class VisualOdometry:
         self.state = TrackingState.INITIALISING
         self.tracker.reset()
         self.map.clear()
+        if self.local_map is not None:
+            self.local_map.reset()
         self._ref: _Reference | None = None
         self._last_stamp_ns: int | None = None
         self._failed_frames = 0
@@ -231,7 +238,8 @@ class VisualOdometry:
         poses `dt` seconds apart. `sources`: earlier bootstrap frames (frame index, ids,
         ideal px, T_world_cam), oldest first, from which tracks without a point become
         triangulation candidates (wider baseline than from now)."""
-        self.map.add(point_ids, X_world, self.frame_index)
+        self.map.add(point_ids, X_world, self.frame_index,
+                     cov=self._two_view_covariances(X_world, sources[0][3], T_world_cur))
         dt = max(dt, 1e-6)
         v_world = (T_world_cur[:3, 3] - T_world_prev[:3, 3]) / dt
         R_rel = T_world_prev[:3, :3].T @ T_world_cur[:3, :3]
@@ -253,6 +261,10 @@ class VisualOdometry:
                     break
             else:
                 self._add_candidate(tid, self.frame_index, px[k], T_world_cur)
+        if self.local_map is not None:
+            for f, ids, src_px, T in sources:
+                self.local_map.add_keyframe(f, T, ids, src_px)
+            self.local_map.add_keyframe(self.frame_index, T_world_cur, tracks.ids, px)
         res.bootstrapped = True
         self._fill_output(res, tracks, has_point, has_point)
 
@@ -301,6 +313,12 @@ class VisualOdometry:
             dt = c.default_dt_s
 
         t = time.perf_counter()
+        if self.local_map is not None:
+            culled = self.local_map.harvest(self.frame_index, self.map)
+            self._banned.update(int(i) for i in culled)
+        timings['local_map'] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
         self.estimator.predict(dt)
         # predicted landmark pixels = the KLT initial guess (active search, Davison 2003)
         prev_ids = self._prev_ids
@@ -327,8 +345,9 @@ class VisualOdometry:
             rows, X = rows[keep], X[keep]
         res = FrameResult(stamp_ns, TrackingState.TRACKING, n_tracks=len(tracks),
                           n_matches=len(rows), timings_ms=timings)
+        sigma = self._map_sigmas(tracks.ids[rows], X)
         try:
-            inlier_rows = self._update(tracks, px, rows, X)
+            inlier_rows = self._update(tracks, px, rows, X, sigma)
         except (FilterError, np.linalg.LinAlgError) as exc:
             self.reset(f'filter failure: {exc}')
             res.state, res.message = self.state, f'lost: {exc}'
@@ -365,10 +384,15 @@ class VisualOdometry:
             n_frozen, grow_mask = self._refine_points(tracks, px, rows, X, T_world_cam)
             res.n_new_points += n_frozen
         res.n_new_points += self._grow_map(tracks, px, grow_mask, T_world_cam)
-        timings['map'] = (time.perf_counter() - t) * 1e3
-
         inlier_mask = np.zeros(len(tracks), bool)
         inlier_mask[inlier_rows] = True
+        if self.local_map is not None:
+            # a keyframe keeps the update's inliers and the tracks that had no point
+            # then (new points, candidates); the update's outliers stay out of the window
+            keep = inlier_mask | ~has_point
+            self.local_map.consider(self.frame_index, T_world_cam, tracks.ids[keep],
+                                    px[keep], self.map.contains(tracks.ids[keep]), self.map)
+        timings['map'] = (time.perf_counter() - t) * 1e3
         res.ok = self._failed_frames == 0
         self._fill_output(res, tracks, has_point, inlier_mask)
         return res
@@ -388,12 +412,31 @@ class VisualOdometry:
             return ids, px_pred
         return np.concatenate((predicted[0], ids)), np.concatenate((predicted[1], px_pred))
 
+    def _map_sigmas(self, ids: np.ndarray, X: np.ndarray) -> np.ndarray | None:
+        """Pixel std of each map measurement: the pixel noise plus the point's own
+        uncertainty projected at the predicted pose (docs/method.md §12.3); None when
+        points are treated as exact (map_point_uncertainty off)."""
+        c = self.cfg
+        if not c.map_point_uncertainty or not len(ids):
+            return None
+        var = projected_variance_px2(X, self.map.covariances(ids), self.ekf.T_world_cam,
+                                     self.camera.K)
+        return np.sqrt(c.pixel_sigma_px ** 2 + var)
+
+    def _two_view_covariances(self, X_world: np.ndarray, T_world_a: np.ndarray,
+                              T_world_b: np.ndarray) -> np.ndarray:
+        """Position covariances of points triangulated from two views (poses taken as
+        exact: the uncertainty of the pixels only)."""
+        return point_covariances(X_world, [geo.invert_T(T_world_a), geo.invert_T(T_world_b)],
+                                 self.camera.K, self.cfg.pixel_sigma_px)
+
     def _update(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
-                X: np.ndarray) -> np.ndarray:
-        """The estimator's update (estimators.py) with the map matches `rows` and, with
-        map_refinement: filter, the tracked in-filter points; records the map points'
-        verdicts (culling). Returns the inlier track rows."""
-        matches = FrameMatches(px[rows], X)
+                X: np.ndarray, sigma: np.ndarray | None) -> np.ndarray:
+        """The estimator's update (estimators.py) with the map matches `rows` (pixel std
+        `sigma`, None = pixel_sigma_px) and, with map_refinement: filter, the tracked
+        in-filter points; records the map points' verdicts (culling). Returns the inlier
+        track rows."""
+        matches = FrameMatches(px[rows], X, sigma_map=sigma)
         f_tracks = np.zeros(0, np.int64)
         if self.points is not None:
             pt_rows = self.points.rows_of(tracks.ids)
@@ -480,7 +523,10 @@ class VisualOdometry:
                     px_then, px[cand_rows[sel]], self.camera.K,
                     c.triangulation_max_reproj_px, c.triangulation_min_parallax_deg)
                 good = tri.valid
-                self.map.add(sel_ids[good], tri.X_world[good], self.frame_index)
+                self.map.add(sel_ids[good], tri.X_world[good], self.frame_index,
+                             cov=self._two_view_covariances(
+                                 tri.X_world[good], self._T_world_cam_at[int(f)],
+                                 T_world_cam))
                 n_added += int(np.count_nonzero(good))
                 for tid in sel_ids[good]:
                     self._drop_candidate(int(tid))

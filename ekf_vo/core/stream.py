@@ -160,6 +160,13 @@ class VoStream:
     def n_resets(self) -> int:
         return self._resets_before + (self.vo.n_resets if self.vo is not None else 0)
 
+    def local_map_stats(self) -> dict:
+        """The local map's keyframe and adjustment figures ({} when it is off)."""
+        vo = self.vo
+        if vo is None or vo.local_map is None:
+            return {}
+        return vo.local_map.stats.as_status()
+
     def restart(self) -> None:
         """Throw the estimator away (after an internal error); the next frame starts a
         fresh one with the current camera and parameters."""
@@ -171,6 +178,8 @@ class VoStream:
     def _replace_estimator(self, vo: VisualOdometry) -> None:
         if self.vo is not None:
             self._resets_before += self.vo.n_resets
+            if self.vo.local_map is not None:
+                self.vo.local_map.close(wait=False)
         self.vo = vo
         self._pending_reset = None
         self._last_processed_ns = None          # a new estimator has no past

@@ -380,6 +380,7 @@ class VoNode(Node):
                 'tracks': r.n_tracks if r else 0, 'inliers': r.n_inliers if r else 0,
                 'map_points': r.map_size if r else 0,
                 'resets': self.stream.n_resets}
+        vals.update(self.stream.local_map_stats())
         vals.update(self.counters)
         return vals
 

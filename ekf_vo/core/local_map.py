@@ -1,0 +1,243 @@
+"""The local map: keyframes, and the windowed bundle adjustment run in a worker thread.
+
+docs/method.md §12. The pipeline hands every tracked frame's pose and observations to
+`LocalMapper.consider`; a frame becomes a keyframe when the last keyframe's map points are
+being lost (covisibility), or when the camera has moved or turned enough since it
+(ORB-SLAM's keyframe rules, Mur-Artal et al., T-RO 2015, sec. V-E, in a simpler form).
+Each new keyframe starts an adjustment of the last `ba_window_keyframes` keyframes and the
+map points they see (local_ba.py) on a snapshot, in a worker thread, so the frame loop
+goes on; the result is applied before the update of the frame `ba_apply_after_frames`
+later (`harvest`), waiting for the worker only if it is not done by then, so that the
+result never depends on timing (offline and live runs agree).
+
+What an adjustment changes: the map points' positions and covariances, the window's
+keyframe poses, and it culls points whose reprojection error stays large. It never
+writes the filter's state: the camera follows the refined map through the next
+measurements (the odometry stays continuous; docs/method.md §12.2).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import VoConfig
+from .local_ba import WindowProblem, WindowSolution, adjust_window
+from .map import LandmarkMap
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class Keyframe:
+    """A frame kept for the adjustment: its pose and every track it observed."""
+
+    frame_index: int
+    T_world_cam: np.ndarray    #: 4x4, refined by the adjustments
+    ids: np.ndarray            #: (n,) int64 track ids, ascending
+    px: np.ndarray             #: (n,2) their IDEAL pixels
+
+
+@dataclass
+class AdjustmentStats:
+    """What the adjustments did (for ~/status and the bench)."""
+
+    n_runs: int = 0
+    last_ms: float = 0.0          #: time of the last adjustment in the worker
+    total_ms: float = 0.0
+    max_ms: float = 0.0
+    wait_ms: float = 0.0          #: time the frame loop waited for a worker, in total
+    n_waits: int = 0              #: frames that had to wait
+    last_points: int = 0
+    last_keyframes: int = 0
+    last_rms_px: float = 0.0
+    n_culled: int = 0
+    n_keyframes: int = 0
+
+    def as_status(self) -> dict:
+        """The figures ~/status reports (times in ms, rounded)."""
+        return {'keyframes': self.n_keyframes, 'ba_runs': self.n_runs,
+                'ba_last_ms': round(self.last_ms, 1), 'ba_max_ms': round(self.max_ms, 1),
+                'ba_mean_ms': round(self.total_ms / self.n_runs, 1) if self.n_runs else 0.0,
+                'ba_wait_ms_total': round(self.wait_ms, 1), 'ba_frames_waited': self.n_waits,
+                'ba_last_points': self.last_points, 'ba_last_rms_px': round(self.last_rms_px, 2),
+                'ba_culled': self.n_culled}
+
+
+@dataclass
+class _Pending:
+    future: Future
+    apply_at: int                 #: frame index at which the result is applied
+    keyframes: list               #: the window's Keyframe objects (poses written back)
+    point_ids: np.ndarray
+
+
+class LocalMapper:
+    """Keyframe selection and the adjustment worker of one VisualOdometry."""
+
+    def __init__(self, cfg: VoConfig, K: np.ndarray) -> None:
+        self.cfg = cfg
+        self.K = np.asarray(K, float)
+        self._pool: ThreadPoolExecutor | None = None
+        self.stats = AdjustmentStats()
+        self.keyframes: list[Keyframe] = []
+        self._pending: _Pending | None = None
+
+    def reset(self) -> None:
+        """Forget the keyframes; a running adjustment is left to finish and ignored."""
+        self.keyframes = []
+        self._pending = None
+
+    def close(self, wait: bool = True) -> None:
+        """Stop the worker thread (a running adjustment finishes; its result is dropped)."""
+        self._pending = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=wait)
+            self._pool = None
+
+    # ------------------------------------------------------------------ keyframes
+    def consider(self, frame_index: int, T_world_cam: np.ndarray, ids: np.ndarray,
+                 px_ideal: np.ndarray, has_point: np.ndarray, landmarks: LandmarkMap
+                 ) -> bool:
+        """Make this frame a keyframe if the rules say so, and start an adjustment.
+        ids/px_ideal: every track of the frame; has_point: those with a map point."""
+        if not self._is_keyframe(T_world_cam, ids[has_point], landmarks):
+            return False
+        self.add_keyframe(frame_index, T_world_cam, ids, px_ideal)
+        if self._pending is None and len(self.keyframes) >= 2:
+            self._launch(frame_index, landmarks)
+        return True
+
+    def add_keyframe(self, frame_index: int, T_world_cam: np.ndarray, ids: np.ndarray,
+                     px_ideal: np.ndarray) -> None:
+        """Append a keyframe (the bootstrap's frames enter this way, without the rules)."""
+        order = np.argsort(ids, kind='stable')
+        self.keyframes.append(Keyframe(frame_index, np.array(T_world_cam, float),
+                                       np.asarray(ids, np.int64)[order],
+                                       np.asarray(px_ideal, float)[order]))
+        self.stats.n_keyframes += 1
+        # keep what the next windows can use (older keyframes are never adjusted again)
+        del self.keyframes[:-self.cfg.ba_window_keyframes]
+
+    def _is_keyframe(self, T_world_cam: np.ndarray, map_ids: np.ndarray,
+                     landmarks: LandmarkMap) -> bool:
+        c = self.cfg
+        if not self.keyframes:
+            return True
+        last = self.keyframes[-1]
+        last_map = last.ids[landmarks.contains(last.ids)] if len(last.ids) else last.ids
+        if len(last_map) and \
+                len(np.intersect1d(last_map, map_ids)) < c.keyframe_min_covisibility * \
+                len(last_map):
+            return True
+        R_rel = last.T_world_cam[:3, :3].T @ T_world_cam[:3, :3]
+        angle = np.degrees(np.arccos(np.clip((np.trace(R_rel) - 1) / 2, -1, 1)))
+        if angle > c.keyframe_max_rotation_deg:
+            return True
+        if len(map_ids):
+            _, X = landmarks.lookup(map_ids)
+            depth = np.median((X - T_world_cam[:3, 3]) @ T_world_cam[:3, 2])
+            moved = np.linalg.norm(T_world_cam[:3, 3] - last.T_world_cam[:3, 3])
+            if depth > 0 and moved > c.keyframe_max_baseline_ratio * depth:
+                return True
+        return False
+
+    # ------------------------------------------------------------------ adjustment
+    def _problem(self, landmarks: LandmarkMap) -> tuple[WindowProblem, np.ndarray] | None:
+        """The window's problem: map points seen by at least two of its keyframes."""
+        kfs = self.keyframes
+        seen = [kf.ids[landmarks.contains(kf.ids)] for kf in kfs]
+        all_ids, counts = np.unique(np.concatenate(seen), return_counts=True)
+        point_ids = all_ids[counts >= 2]
+        if len(point_ids) == 0:
+            return None
+        cam_idx, pt_idx, px = [], [], []
+        for k, kf in enumerate(kfs):
+            common, i_kf, i_pt = np.intersect1d(kf.ids, point_ids, assume_unique=True,
+                                                return_indices=True)
+            cam_idx.append(np.full(len(common), k))
+            pt_idx.append(i_pt)
+            px.append(kf.px[i_kf])
+        _, X = landmarks.lookup(point_ids)
+        cam_idx, pt_idx = np.concatenate(cam_idx), np.concatenate(pt_idx)
+        px = np.concatenate(px)
+        ok = self._wide_enough(X, cam_idx, pt_idx)
+        keep = ok[pt_idx]
+        remap = -np.ones(len(point_ids), np.int64)
+        remap[ok] = np.arange(int(ok.sum()))
+        point_ids, X = point_ids[ok], X[ok]
+        cam_idx, pt_idx, px = cam_idx[keep], remap[pt_idx[keep]], px[keep]
+        if len(point_ids) == 0:
+            return None
+        fixed = np.zeros(len(kfs), bool)
+        fixed[:self.cfg.ba_fixed_keyframes] = True
+        problem = WindowProblem(np.stack([kf.T_world_cam for kf in kfs]), fixed, X.copy(),
+                                cam_idx, pt_idx, px)
+        return problem, point_ids
+
+    def _wide_enough(self, X: np.ndarray, cam_idx: np.ndarray, pt_idx: np.ndarray
+                     ) -> np.ndarray:
+        """Points whose rays from their first and last keyframe of the window span
+        ba_min_parallax_deg: a low-parallax point's depth is noise, and refining it from
+        the window alone drifted the scale on KITTI 06 (docs/method.md §12.4)."""
+        C = np.stack([kf.T_world_cam[:3, 3] for kf in self.keyframes])
+        first = np.full(len(X), len(C))
+        last = np.full(len(X), -1)
+        np.minimum.at(first, pt_idx, cam_idx)
+        np.maximum.at(last, pt_idx, cam_idx)
+        a, b = X - C[first], X - C[last]
+        norms = np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
+        angle = np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1) / norms, -1, 1)))
+        return angle >= self.cfg.ba_min_parallax_deg
+
+    def _launch(self, frame_index: int, landmarks: LandmarkMap) -> None:
+        built = self._problem(landmarks)
+        if built is None:
+            return
+        problem, point_ids = built
+        c = self.cfg
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix='ekf_vo_ba')
+        future = self._pool.submit(adjust_window, problem, self.K, c.pixel_sigma_px,
+                                   c.ba_huber_px, c.ba_max_iterations)
+        self._pending = _Pending(future, frame_index + c.ba_apply_after_frames,
+                                 list(self.keyframes), point_ids)
+
+    def harvest(self, frame_index: int, landmarks: LandmarkMap) -> np.ndarray:
+        """Apply a finished adjustment that is due (waiting for it if needed).
+        Returns the ids of the culled points (empty when nothing was applied)."""
+        pend = self._pending
+        if pend is None or frame_index < pend.apply_at:
+            return np.zeros(0, np.int64)
+        if not pend.future.done():
+            t = time.perf_counter()
+            pend.future.result()
+            self.stats.wait_ms += (time.perf_counter() - t) * 1e3
+            self.stats.n_waits += 1
+        self._pending = None
+        sol: WindowSolution = pend.future.result()
+        return self._apply(sol, pend, landmarks)
+
+    def _apply(self, sol: WindowSolution, pend: _Pending, landmarks: LandmarkMap
+               ) -> np.ndarray:
+        c = self.cfg
+        for kf, T in zip(pend.keyframes, sol.T_world_cam):
+            kf.T_world_cam = T
+        # a point whose median error over its keyframes stays large is wrong: cull it
+        n = len(pend.point_ids)
+        bad = ~(sol.point_median_err_px <= c.ba_outlier_px)
+        culled = pend.point_ids[bad]
+        landmarks.remove(culled)
+        landmarks.refine(pend.point_ids[~bad], sol.X_world[~bad], sol.X_cov[~bad])
+        s = self.stats
+        s.n_runs += 1
+        s.last_ms = sol.elapsed_ms
+        s.total_ms += sol.elapsed_ms
+        s.max_ms = max(s.max_ms, sol.elapsed_ms)
+        s.last_points, s.last_keyframes = n, len(pend.keyframes)
+        s.last_rms_px = sol.rms_after_px
+        s.n_culled += len(culled)
+        return culled
