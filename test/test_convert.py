@@ -331,6 +331,69 @@ def test_interpolate_poses() -> None:
     assert out[4] is None and out[5] is None
 
 
+# ============================================================================ options
+def test_jpeg_quality_is_lossy_but_close(tmp_path: Path, frames) -> None:
+    """--jpeg-quality: JPEG CompressedImage on .../compressed that decodes near the source
+    (not equal: the check would pass for PNG too if the data were not JPEG)."""
+    src = make_kitti(tmp_path, frames)
+    res = convert.convert('kitti', src, tmp_path / 'bag', jpeg_quality=75)
+    assert res.counts['/camera/image_raw/compressed'] == N
+    bag = _read_back(tmp_path / 'bag')
+    assert set(bag['topics']) == {'/camera/camera_info', '/camera/image_raw/compressed',
+                                  '/ground_truth/pose'}
+    fmts = {msg.format for _, _, _, msg in bagio.iter_bag(tmp_path / 'bag',
+                                                          ['/camera/image_raw/compressed'])}
+    assert fmts == {'mono8; jpeg compressed '}
+    assert len(bag['images']) == N
+    diffs = [float(np.mean(np.abs(img.astype(float) - ref.astype(float))))
+             for img, (_, ref, _) in zip(bag['images'], frames)]
+    assert all(0.0 < d < 3.0 for d in diffs), diffs
+    # a lower quality loses more: the option reaches the encoder
+    convert.convert('kitti', src, tmp_path / 'q10', jpeg_quality=10)
+    low = _read_back(tmp_path / 'q10')['images'][0]
+    assert np.mean(np.abs(low.astype(float) - frames[0][1])) > diffs[0]
+
+
+def test_info_after_image_order(tmp_path: Path, frames) -> None:
+    """--info-after-image: a reader sees each image before its CameraInfo (the first message
+    is an image), the info keeps the image's header stamp and precedes the next image; the
+    default keeps CameraInfo first; both run the same frames."""
+    src = make_kitti(tmp_path, frames)
+    convert.convert('kitti', src, tmp_path / 'before')
+    convert.convert('kitti', src, tmp_path / 'after', info_after_image=True)
+    first = next(bagio.iter_bag(tmp_path / 'before'))
+    assert first[1] == bagio.CAMERA_INFO
+    msgs = list(bagio.iter_bag(tmp_path / 'after'))
+    assert msgs[0][1] == bagio.IMAGE
+    camera = [(msgtype, log_ns, bagio.time_to_ns(msg.header.stamp))
+              for _, msgtype, log_ns, msg in msgs if msgtype != bagio.POSE_STAMPED]
+    assert [m for m, _, _ in camera] == [bagio.IMAGE, bagio.CAMERA_INFO] * N
+    images, infos = camera[0::2], camera[1::2]
+    for k, ((_, img_log, img_stamp), (_, info_log, info_stamp)) in \
+            enumerate(zip(images, infos)):
+        assert info_stamp == img_stamp == img_log < info_log
+        if k + 1 < N:
+            assert info_log < images[k + 1][1]
+    for name in ('before', 'after'):
+        summary = run_bag(tmp_path / name)
+        assert (summary.frames, summary.frames_skipped) == (N, 0), name
+
+
+def test_cli_jpeg_and_info_after(tmp_path: Path, frames, capsys) -> None:
+    src = make_folder(tmp_path, frames[:3])
+    assert convert.main(['folder', str(src), str(tmp_path / 'x'), '-q',
+                         '--jpeg-quality', '101']) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == 'ekf-vo-convert: error: --jpeg-quality must be in 1..100, got 101'
+    assert not (tmp_path / 'x').exists()
+    assert convert.main(['folder', str(src), str(tmp_path / 'y'), '-q', '--jpeg-quality',
+                         '90', '--info-after-image']) == 0
+    topic, msgtype, _, msg = next(bagio.iter_bag(tmp_path / 'y'))
+    assert (topic, msgtype) == ('/camera/image_raw/compressed', bagio.COMPRESSED_IMAGE)
+    assert 'jpeg' in msg.format
+    with pytest.raises(convert.ConvertError, match='1..100'):
+        convert.convert('folder', src, tmp_path / 'z', jpeg_quality=True)
+
 # ============================================================================ convert -> run
 def test_convert_then_run_euroc_walk(tmp_path: Path) -> None:
     """60 frames of 'walk' at 30 Hz, 640x480, laid out as EuRoC (body poses + T_BS),

@@ -2,18 +2,25 @@
 
 Console script::
 
-    ekf-vo-convert FORMAT SRC OUT_BAG [--compressed] [--limit N] [--camera-topic /camera]
-                   [--poses FILE] [--camera FX FY CX CY [D0..D4]] [--overwrite] [--quiet]
+    ekf-vo-convert FORMAT SRC OUT_BAG [--compressed] [--jpeg-quality Q] [--info-after-image]
+                   [--limit N] [--camera-topic /camera] [--poses FILE]
+                   [--camera FX FY CX CY [D0..D4]] [--overwrite] [--quiet]
 
 Formats ``kitti``, ``tum``, ``euroc`` and ``folder``: what is read, and the frame conventions
 of its ground truth, are described in :mod:`ekf_vo.tools.convert_sources` (the readers).
 
-Output bag (every message stamped with the image time, header stamp = log time):
+Output bag (every message stamped with the image time, header stamp = log time, except the
+CameraInfo log time with ``--info-after-image``):
 
 * ``<camera-topic>/image_raw`` ``sensor_msgs/msg/Image`` mono8, or with ``--compressed``
-  ``<camera-topic>/image_raw/compressed`` ``sensor_msgs/msg/CompressedImage`` PNG (lossless);
-  frame_id ``camera_optical``;
-* ``<camera-topic>/camera_info`` ``sensor_msgs/msg/CameraInfo`` (R = I, P = [K | 0]);
+  ``<camera-topic>/image_raw/compressed`` ``sensor_msgs/msg/CompressedImage`` PNG (lossless),
+  or with ``--jpeg-quality Q`` the same topic as JPEG at quality Q (lossy, what a camera's
+  image_transport ``compressed`` publisher records); frame_id ``camera_optical``;
+* ``<camera-topic>/camera_info`` ``sensor_msgs/msg/CameraInfo`` (R = I, P = [K | 0]), written
+  before its image (same log time); with ``--info-after-image`` its log time is
+  :data:`INFO_AFTER_NS` after the image (at most half-way to the next image), the order a
+  live image_transport camera publisher gives, so a reader sees the first image before any
+  CameraInfo; the header stamp stays the image stamp;
 * ``/ground_truth/pose`` ``geometry_msgs/msg/PoseStamped``: ``T_world_cam`` of the camera
   optical frame, frame_id ``world``, for the frames that have ground truth.
 
@@ -42,11 +49,13 @@ from .convert_sources import (FORMATS, ConvertError, SourceSequence, interpolate
 logger = logging.getLogger(__name__)
 
 __all__ = ['FORMATS', 'ConvertError', 'SourceSequence', 'ConvertSummary', 'interpolate_poses',
-           'load_source', 'tum_camera_from_name', 'write_sequence', 'convert', 'build_parser',
-           'main']
+           'load_source', 'tum_camera_from_name', 'INFO_AFTER_NS', 'check_jpeg_quality',
+           'write_sequence', 'convert', 'build_parser', 'main']
 
 CAMERA_FRAME = 'camera_optical'
 WORLD_FRAME = 'world'
+#: log-time delay of a CameraInfo after its image with ``info_after_image`` [ns] (1 ms)
+INFO_AFTER_NS = 1_000_000
 
 
 @dataclass
@@ -61,15 +70,33 @@ class ConvertSummary:
     notes: list[str]
 
 
+def check_jpeg_quality(jpeg_quality: int | None) -> None:
+    """ConvertError unless ``jpeg_quality`` is None or an int in 1..100 (OpenCV would
+    silently clamp anything else, hiding a typo in a benchmark's settings)."""
+    if jpeg_quality is None:
+        return
+    if isinstance(jpeg_quality, bool) or not isinstance(jpeg_quality, (int, np.integer)) \
+            or not 1 <= jpeg_quality <= 100:
+        raise ConvertError(f'--jpeg-quality must be in 1..100, got {jpeg_quality}')
+
+
 def write_sequence(seq: SourceSequence, out_bag: str | Path, *, compressed: bool = False,
+                   jpeg_quality: int | None = None, info_after_image: bool = False,
                    limit: int | None = None, camera_topic: str = '/camera',
                    overwrite: bool = False, progress: bool = False) -> ConvertSummary:
     """Write ``seq`` as a rosbag2 (MCAP) bag (topics in the module docstring); a partly
-    written bag is removed when an error interrupts the conversion."""
+    written bag is removed when an error interrupts the conversion.
+
+    ``compressed``: PNG CompressedImage; ``jpeg_quality`` (1..100): JPEG CompressedImage at
+    that quality (implies compressed); ``info_after_image``: each CameraInfo logged after
+    its image (image_transport's order) instead of before it.
+    """
+    check_jpeg_quality(jpeg_quality)
     out_bag = Path(out_bag)
     if out_bag.exists() and not overwrite:
         raise ConvertError(f'{out_bag} exists (use --overwrite)')
     ns = '/' + camera_topic.strip('/') if camera_topic.strip('/') else ''
+    compressed = compressed or jpeg_quality is not None
     image_topic = transport_topic(f'{ns}/image_raw', 'compressed' if compressed else 'raw')
     info_topic = f'{ns}/camera_info'
     n = len(seq) if limit is None else max(0, min(int(limit), len(seq)))
@@ -78,9 +105,9 @@ def write_sequence(seq: SourceSequence, out_bag: str | Path, *, compressed: bool
     if progress:
         from tqdm import tqdm
         it = tqdm(it, unit='frame', desc=f'convert -> {out_bag.name}', file=sys.stderr)
+    opts = _WriteOptions(compressed, jpeg_quality, info_after_image)
     try:
-        counts = _write_frames(seq, out_bag, it, image_topic, info_topic, compressed,
-                               overwrite)
+        counts = _write_frames(seq, out_bag, it, image_topic, info_topic, opts, overwrite)
     except BaseException:
         # no half-written bag left behind (a later run would refuse to overwrite it)
         if out_bag.exists():
@@ -93,10 +120,29 @@ def write_sequence(seq: SourceSequence, out_bag: str | Path, *, compressed: bool
     return ConvertSummary(out_bag, n, n_gt, counts, cam, notes)
 
 
+@dataclass(frozen=True)
+class _WriteOptions:
+    """How :func:`_write_frames` writes each image and where its CameraInfo goes."""
+
+    compressed: bool                 #: CompressedImage (else raw Image)
+    jpeg_quality: int | None         #: JPEG at this quality, None: PNG (when compressed)
+    info_after_image: bool           #: CameraInfo logged after its image
+
+
+def _info_log_ns(seq: SourceSequence, k: int) -> int:
+    """Log time of frame ``k``'s CameraInfo when it follows its image: INFO_AFTER_NS after
+    the image, but at most half-way to the next image so it still precedes that one."""
+    stamp = int(seq.stamps_ns[k])
+    if k + 1 < len(seq):
+        return stamp + min(INFO_AFTER_NS, (int(seq.stamps_ns[k + 1]) - stamp) // 2)
+    return stamp + INFO_AFTER_NS
+
+
 def _write_frames(seq: SourceSequence, out_bag: Path, frames: Iterable[int], image_topic: str,
-                  info_topic: str, compressed: bool, overwrite: bool) -> dict[str, int]:
+                  info_topic: str, opts: _WriteOptions, overwrite: bool
+                  ) -> dict[str, int]:
     """Write the frames ``frames`` of ``seq``; returns the message count per topic."""
-    from ..io.bag import BagWriter
+    from ..io.bag import CAMERA_INFO, BagWriter, camera_info_msg
 
     cam = seq.camera
     with BagWriter(out_bag, overwrite=overwrite) as bag:
@@ -108,29 +154,40 @@ def _write_frames(seq: SourceSequence, out_bag: Path, frames: Iterable[int], ima
             if gray.shape != (cam['height'], cam['width']):
                 raise ConvertError(f'{seq.images[k]}: {gray.shape[1]}x{gray.shape[0]} differs '
                                    f'from the camera {cam["width"]}x{cam["height"]}')
-            bag.add_camera_info(info_topic, cam['width'], cam['height'], cam['K'], cam['D'],
-                                cam['distortion_model'], stamp, CAMERA_FRAME)
-            if compressed:
+            # header stamp = image stamp either way (how a camera publisher pairs them)
+            info = camera_info_msg(cam['width'], cam['height'], cam['K'], cam['D'],
+                                   cam['distortion_model'], stamp, CAMERA_FRAME)
+            if not opts.info_after_image:
+                bag.write(info_topic, CAMERA_INFO, info, stamp)
+            if opts.jpeg_quality is not None:
+                bag.add_compressed(image_topic, gray, stamp, CAMERA_FRAME, fmt='jpeg',
+                                   quality=opts.jpeg_quality)
+            elif opts.compressed:
                 bag.add_compressed(image_topic, gray, stamp, CAMERA_FRAME, fmt='png')
             else:
                 bag.add_image(image_topic, gray, stamp, CAMERA_FRAME)
             T = seq.gt_T_world_cam[k] if seq.gt_T_world_cam is not None else None
             if T is not None:
                 bag.add_pose(GT_TOPIC, T, stamp, WORLD_FRAME)
+            if opts.info_after_image:
+                bag.write(info_topic, CAMERA_INFO, info, _info_log_ns(seq, k))
         return dict(bag.counts)
 
 
 def convert(fmt: str, src: str | Path, out_bag: str | Path, *, compressed: bool = False,
+            jpeg_quality: int | None = None, info_after_image: bool = False,
             limit: int | None = None, camera_topic: str = '/camera',
             poses: str | Path | None = None, camera: Sequence[float] | None = None,
             overwrite: bool = False, progress: bool = False) -> ConvertSummary:
-    """Read dataset ``src`` (format ``fmt``) and write the bag ``out_bag``.
+    """Read dataset ``src`` (format ``fmt``) and write the bag ``out_bag``
+    (``compressed``, ``jpeg_quality``, ``info_after_image``: see :func:`write_sequence`).
 
     Raises:
         ConvertError: missing or malformed input, or ``out_bag`` exists without ``overwrite``.
     """
     if limit is not None and limit <= 0:
         raise ConvertError(f'--limit must be positive, got {limit}')
+    check_jpeg_quality(jpeg_quality)
     if Path(out_bag).exists() and not overwrite:
         raise ConvertError(f'{out_bag} exists (use --overwrite)')
     if not Path(out_bag).exists():
@@ -143,7 +200,8 @@ def convert(fmt: str, src: str | Path, out_bag: str | Path, *, compressed: bool 
                            'ekf-vo-play and ekf-vo-eval read it as it is (ekf-vo-convert '
                            'reads dataset folders)')
     seq = load_source(fmt, src, poses=poses, camera=camera)
-    return write_sequence(seq, out_bag, compressed=compressed, limit=limit,
+    return write_sequence(seq, out_bag, compressed=compressed, jpeg_quality=jpeg_quality,
+                          info_after_image=info_after_image, limit=limit,
                           camera_topic=camera_topic, overwrite=overwrite, progress=progress)
 
 
@@ -160,6 +218,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--compressed', action='store_true',
                    help='write PNG CompressedImage on <camera-topic>/image_raw/compressed '
                    'instead of raw mono8 Image')
+    p.add_argument('--jpeg-quality', type=int, default=None, metavar='Q',
+                   help='write JPEG CompressedImage at quality Q (1-100) on '
+                   '<camera-topic>/image_raw/compressed (lossy, as a camera driver records; '
+                   'implies --compressed, JPEG instead of PNG)')
+    p.add_argument('--info-after-image', action='store_true',
+                   help='log each CameraInfo 1 ms after its image (image_transport order) '
+                   'instead of before it')
     p.add_argument('--limit', type=int, default=None, metavar='N', help='first N frames only')
     p.add_argument('--camera-topic', default='/camera',
                    help='topic namespace of the camera (default: /camera)')
@@ -181,6 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
     try:
         res = convert(args.format, args.src, args.out_bag, compressed=args.compressed,
+                      jpeg_quality=args.jpeg_quality, info_after_image=args.info_after_image,
                       limit=args.limit, camera_topic=args.camera_topic, poses=args.poses,
                       camera=args.camera, overwrite=args.overwrite, progress=not args.quiet)
     except ConvertError as exc:
