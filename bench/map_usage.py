@@ -10,7 +10,9 @@ Per tracking frame of the full pipeline (images in, monocular bootstrap, no grou
   frame sees, both put them in the image almost always alike.
 - map size, for context.
 Sequences: the demo bag (compressed 640x480, rendered room) and KITTI 06 frames 0-50 when
-the developers' data folder is present.
+the developers' data folder is present; each with the defaults and with the points
+triangulated once (`local_map: false`, the design before docs/method.md §12), for a
+before/after, and with map points found again (`refind_map_points: true`, §12.5).
 
     python -m bench.map_usage [--quick] [--out DIR]
 """
@@ -68,16 +70,23 @@ def run_sequence(frames, info, cfg: VoConfig) -> dict:
             'map_size_final': int(len(stream.vo.map))}
 
 
+#: the configurations compared: today's defaults, and the map before the local map
+CONFIGS = {'defaults': VoConfig(), 'triangulated once': VoConfig(local_map=False),
+           'points found again': VoConfig(refind_map_points=True)}
+
+
 def run(quick: bool = False, out: Path | None = None) -> dict:
     info, frames = load_demo_frames()
-    res = {'demo': run_sequence(frames[:120] if quick else frames, info, VoConfig())}
+    res = {f'demo, {name}': run_sequence(frames[:120] if quick else frames, info, cfg)
+           for name, cfg in CONFIGS.items()}
     folder = shared_data('kitti06_f0-50')
     if folder is None:
         res['kitti06'] = {'skipped': "KITTI 06 is not in the developers' data folder"}
     else:
         from ekf_vo.io.dataset import load_folder
         data = load_folder(folder)
-        res['kitti06'] = run_sequence(list(data.frames()), data.camera, VoConfig())
+        for name, cfg in CONFIGS.items():
+            res[f'kitti06, {name}'] = run_sequence(list(data.frames()), data.camera, cfg)
     return res
 
 

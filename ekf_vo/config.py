@@ -221,6 +221,26 @@ class VoConfig(_Params):
         2, 'An adjustment started at a keyframe is applied before the update of the frame '
         'this many frames later (waiting for it if it is not done: results do not depend '
         'on timing).', 'frames', 1, 100, group='local_map')
+    refind_map_points: bool = param(
+        False, 'Search map points whose track has ended around their predicted pixel by '
+        'ORB descriptor; a match becomes a measurement and a track again '
+        '(docs/method.md §12.5). Needs local_map (descriptors come from keyframes). Off: '
+        'not yet a win on every sequence (docs/method.md §12.4).',
+        group='local_map')
+    refind_max_hamming: int = param(
+        50, 'Largest Hamming distance (of 256 bits) of a match found again.', 'bits', 1,
+        256, group='local_map')
+    refind_search_sigmas: float = param(
+        3.0, 'Search radius in standard deviations of the innovation (prior + pixel '
+        'noise).', '', 0.5, 20.0, group='local_map')
+    refind_min_radius_px: float = param(
+        4.0, 'Smallest search radius.', 'px', 0.5, 200.0, group='local_map')
+    refind_max_radius_px: float = param(
+        20.0, 'Largest search radius (a wider prior is not searched: too ambiguous).',
+        'px', 1.0, 500.0, group='local_map')
+    refind_max_points: int = param(
+        150, 'At most this many map points are searched for per frame.', 'count', 1,
+        100000, group='local_map')
     map_point_uncertainty: bool = param(
         False, 'Add each map point\'s covariance (triangulation or adjustment), projected '
         'into the image, to its measurement noise (docs/method.md §12.3). Off by default: '

@@ -166,3 +166,16 @@ def test_the_local_map_adjusts_windows_deterministically(sequence):
         if a.ok:
             np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
     vo.local_map.close()
+
+
+def test_map_points_are_found_again_as_tracks(sequence):
+    """refind_map_points on (docs/method.md §12.5): map points whose track ended are
+    found again by descriptor and come back as tracks under their own ids, and the
+    run still tracks."""
+    camera, frames = sequence
+    vo, results = run(camera, frames, local_map=True, refind_map_points=True)
+    found = sum(r.n_found_again for r in results)
+    assert found > 0            # the walk's tracks are long: few points are lost in view
+    ev = ate_pct(frames, results)
+    assert ev.pct_tracked >= 90.0 and vo.n_resets == 0
+    vo.local_map.close()

@@ -226,6 +226,24 @@ class FeatureTracker:
         return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(),
                       n_new, stats.n_lost)
 
+    def adopt(self, ids: np.ndarray, px: np.ndarray) -> Tracks:
+        """Add tracks found by another means in the current frame (map points found
+        again, core/refind.py) under their own, old ids, which no live track uses; they
+        continue from here like any track (age 0). Returns the live tracks."""
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        if len(ids):
+            if np.isin(ids, self._ids).any():
+                raise ValueError('adopt: an id is already a live track')
+            all_ids = np.concatenate((self._ids, ids))
+            order = np.argsort(all_ids, kind='stable')
+            self._ids = all_ids[order]
+            self._px = np.ascontiguousarray(np.concatenate(
+                (self._px, np.asarray(px, np.float32).reshape(-1, 2)))[order])
+            self._age = np.concatenate((self._age, np.zeros(len(ids), np.int32)))[order]
+        n_new = self._stats.n_new
+        return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(),
+                      n_new, self._stats.n_lost)
+
     # ------------------------------------------------------------------ internals
 
     @staticmethod

@@ -44,6 +44,8 @@ class LandmarkMap:
         self._ids = np.zeros(cap, np.int64)
         self._X = np.zeros((cap, 3))
         self._cov = np.zeros((cap, 3, 3))
+        self._desc = np.zeros((cap, 32), np.uint8)     # ORB, for finding it again
+        self._has_desc = np.zeros(cap, bool)
         self._n_obs = np.zeros(cap, np.int32)
         self._misses = np.zeros(cap, np.int32)
         self._last_seen = np.zeros(cap, np.int64)
@@ -72,14 +74,14 @@ class LandmarkMap:
         if need <= cap:
             return
         new = max(need, 2 * cap)
-        for name in ('_ids', '_n_obs', '_misses', '_last_seen'):
+        for name in ('_ids', '_n_obs', '_misses', '_last_seen', '_has_desc'):
             arr = getattr(self, name)
             out = np.zeros(new, arr.dtype)
             out[:cap] = arr
             setattr(self, name, out)
-        for name in ('_X', '_cov'):
+        for name in ('_X', '_cov', '_desc'):
             arr = getattr(self, name)
-            out = np.zeros((new,) + arr.shape[1:])
+            out = np.zeros((new,) + arr.shape[1:], arr.dtype)
             out[:cap] = arr
             setattr(self, name, out)
 
@@ -100,6 +102,7 @@ class LandmarkMap:
                 self._ids[row] = lid
             self._X[row] = X
             self._cov[row] = C
+            self._has_desc[row] = False
             self._n_obs[row] = n_obs
             self._misses[row] = 0
             self._last_seen[row] = frame_index
@@ -131,6 +134,18 @@ class LandmarkMap:
             n += 1
         return n
 
+    def set_descriptors(self, ids: np.ndarray, desc: np.ndarray) -> None:
+        """Binary descriptors (n,32) uint8 of landmarks `ids` (the latest keyframe's)."""
+        rows = np.array([self._row.get(int(i), -1) for i in ids], dtype=np.int64)
+        ok = rows >= 0
+        self._desc[rows[ok]] = desc[ok]
+        self._has_desc[rows[ok]] = True
+
+    def described(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Landmarks that have a descriptor: ids (k,), X_world (k,3), descriptors (k,32)."""
+        rows = np.flatnonzero(self._has_desc[:self._size])
+        return self._ids[rows], self._X[rows], self._desc[rows]
+
     def contains(self, ids: np.ndarray) -> np.ndarray:
         return np.array([int(i) in self._row for i in ids], dtype=bool)
 
@@ -157,8 +172,8 @@ class LandmarkMap:
             last = self._size - 1
             if row != last:
                 moved = int(self._ids[last])
-                for arr in (self._ids, self._X, self._cov, self._n_obs, self._misses,
-                            self._last_seen):
+                for arr in (self._ids, self._X, self._cov, self._desc, self._has_desc,
+                            self._n_obs, self._misses, self._last_seen):
                     arr[row] = arr[last]
                 self._row[moved] = row
             self._size -= 1

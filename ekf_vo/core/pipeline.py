@@ -21,6 +21,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from ..config import VoConfig
@@ -35,6 +36,7 @@ from .local_map import LocalMapper
 from .map import LandmarkMap
 from .multiview import MultiViewBootstrap
 from .observation import projected_variance_px2
+from .refind import Describer, match_in_windows
 from .point_filter import PointFilter
 from .triangulation import triangulate_points
 
@@ -66,6 +68,7 @@ class FrameResult:
     n_matches: int = 0                      #: tracks with a landmark used in the update
     n_inliers: int = 0
     n_new_points: int = 0
+    n_found_again: int = 0                  #: map points found again (tracks from now)
     nis_per_dof: float = 0.0               #: normalised innovation squared / (2 n)
     map_size: int = 0
     bootstrapped: bool = False              #: this frame completed a (re-)bootstrap
@@ -102,6 +105,7 @@ class VisualOdometry:
         self.map = LandmarkMap(cfg.max_map_points, cfg.cull_after_misses)
         # keyframes + windowed adjustment (docs/method.md §12); None = points never refined
         self.local_map = LocalMapper(cfg, camera.K) if cfg.local_map else None
+        self.describer = Describer() if cfg.local_map and cfg.refind_map_points else None
         self.rng = np.random.default_rng(seed)
         # in-filter map refinement (docs/method.md §8); None = the hybrid default
         self.points: PointFilter | None = None
@@ -160,6 +164,7 @@ class VisualOdometry:
                 (stamp_ns - self._last_stamp_ns) * 1e-9 > self.cfg.max_dt_s:
             self.reset(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s')
         self.frame_index += 1
+        self._gray = gray       # the frame being processed (keyframe descriptors)
         if self.state == TrackingState.TRACKING:
             result = self._track(gray, stamp_ns)
         elif self.multiview is not None:
@@ -265,6 +270,8 @@ class VisualOdometry:
             for f, ids, src_px, T in sources:
                 self.local_map.add_keyframe(f, T, ids, src_px)
             self.local_map.add_keyframe(self.frame_index, T_world_cur, tracks.ids, px)
+        if self.describer is not None:
+            self._describe(self._gray, tracks)
         res.bootstrapped = True
         self._fill_output(res, tracks, has_point, has_point)
 
@@ -390,12 +397,77 @@ class VisualOdometry:
             # a keyframe keeps the update's inliers and the tracks that had no point
             # then (new points, candidates); the update's outliers stay out of the window
             keep = inlier_mask | ~has_point
-            self.local_map.consider(self.frame_index, T_world_cam, tracks.ids[keep],
-                                    px[keep], self.map.contains(tracks.ids[keep]), self.map)
+            if self.local_map.consider(self.frame_index, T_world_cam, tracks.ids[keep],
+                                       px[keep], self.map.contains(tracks.ids[keep]),
+                                       self.map):
+                self._describe(gray, tracks)
         timings['map'] = (time.perf_counter() - t) * 1e3
         res.ok = self._failed_frames == 0
         self._fill_output(res, tracks, has_point, inlier_mask)
+        if self.describer is not None:
+            t = time.perf_counter()
+            found = self._find_again(gray, tracks)
+            res.n_found_again = len(found)
+            self._prev_ids = np.union1d(self._prev_ids, found)
+            timings['refind'] = (time.perf_counter() - t) * 1e3
         return res
+
+    # ------------------------------------------------------------------ found again
+    def _describe(self, gray: np.ndarray, tracks: Tracks) -> None:
+        """A keyframe's ORB descriptors for the map points it tracks (§12.5)."""
+        if self.describer is None:
+            return
+        has_point = self.map.contains(tracks.ids)
+        desc, rows = self.describer.describe(gray, tracks.px[has_point])
+        self.map.set_descriptors(tracks.ids[has_point][rows], desc)
+
+    def _find_again(self, gray: np.ndarray, tracks: Tracks) -> np.ndarray:
+        """Map points the updated pose puts in the image without a live track, searched
+        by descriptor around their predicted pixel; matches become tracks that the next
+        frames measure (§12.5: searched after the update, where the pose is known to a
+        few pixels, not with the prior). Returns the ids found."""
+        c = self.cfg
+        ids, X, desc = self.map.described()
+        lost = ~np.isin(ids, tracks.ids)
+        ids, X, desc = ids[lost], X[lost], desc[lost]
+        none = np.zeros(0, np.int64)
+        if not len(ids):
+            return none
+        px_ideal, front, H = self.ekf.observe(X)
+        h, w = gray.shape[:2]
+        raw = self.camera.distort(px_ideal)
+        m = 16.0
+        inside = front & np.all(np.isfinite(raw), axis=1) & (raw[:, 0] >= m) & \
+            (raw[:, 0] < w - m) & (raw[:, 1] >= m) & (raw[:, 1] < h - m)
+        rows = np.flatnonzero(inside)
+        if len(rows) > c.refind_max_points:
+            rows = np.sort(self.rng.choice(rows, c.refind_max_points, replace=False))
+        if not len(rows):
+            return none
+        # innovation covariance of each point: H P H^T + sigma^2 I, its largest axis
+        Hn = H.reshape(-1, 2, H.shape[1])[rows]
+        S = Hn @ self.ekf.P @ np.transpose(Hn, (0, 2, 1)) + np.eye(2) * c.pixel_sigma_px ** 2
+        tr, det = S[:, 0, 0] + S[:, 1, 1], np.linalg.det(S)
+        big = tr / 2 + np.sqrt(np.maximum(tr ** 2 / 4 - det, 0))
+        radius = c.refind_search_sigmas * np.sqrt(big)
+        searched = radius <= c.refind_max_radius_px
+        rows, radius = rows[searched], np.maximum(radius[searched], c.refind_min_radius_px)
+        if not len(rows):
+            return none
+        # FAST corners in the search windows, away from the live tracks
+        mask = np.zeros((h, w), np.uint8)
+        for (u, v), r in zip(raw[rows], radius):
+            cv2.circle(mask, (int(round(u)), int(round(v))), int(np.ceil(r)), 255, -1)
+        for u, v in tracks.px:
+            cv2.circle(mask, (int(round(u)), int(round(v))),
+                       int(self.cfg.min_feature_distance_px), 0, -1)
+        corners = self.describer.corners(gray, mask)
+        corner_desc, ok = self.describer.describe(gray, corners)
+        match = match_in_windows(raw[rows], radius, desc[rows], corners[ok], corner_desc,
+                                 c.refind_max_hamming)
+        found = match >= 0
+        self.tracker.adopt(ids[rows][found], corners[ok][match[found]])
+        return ids[rows][found]
 
     # ------------------------------------------------------------------ point filter
     def _add_filter_predictions(self, predicted):

@@ -1,0 +1,95 @@
+"""Pose NEES of the full pipeline (images in, monocular bootstrap) on rendered sequences.
+
+What the filter was told: nothing but the images and the calibration (no ground-truth
+start, no exact map, its configured pixel noise). To compare its covariance with the
+truth, the estimate is brought onto the ground truth by the Sim(3) alignment of the
+evaluation (tools/evaluate.py: p_gt ~ s R p_est + t); each frame's error is then
+e = (position error in the estimate's frame and scale, world rotation vector
+log(R_gt_in_est R_est^T)), the convention of the published pose covariance
+(docs/method.md §10.1), and NEES = e^T P^-1 e, 6 dof: its mean is 6 when the covariance
+is honest. The alignment removes the gauge (a monocular map's frame and scale); what is
+left is the drift the covariance has to account for.
+
+    python -m bench.pipeline_nees [--seeds 3] [--set NAME=VALUE ...] [--json OUT]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ekf_vo.config import VoConfig
+from ekf_vo.core import geometry as geo
+from ekf_vo.core.camera import PinholeCamera
+from ekf_vo.core.pipeline import VisualOdometry
+from ekf_vo.tools.evaluate import evaluate
+from ekf_vo.tools.run import parse_overrides
+from ekf_vo.tools.synth import SynthConfig, render_sequence
+from .common import write_json
+
+TRAJECTORIES = ('walk', 'orbit')
+
+
+def frame_nees(T_gt_est: np.ndarray, T_gt: np.ndarray, T_est: np.ndarray,
+               cov: np.ndarray) -> float:
+    """6-dof NEES of one pose after the Sim(3) alignment T_gt_est = [[sR, t], [0, 1]]."""
+    sR, t = T_gt_est[:3, :3], T_gt_est[:3, 3]
+    s = np.cbrt(np.linalg.det(sR))
+    R = sR / s
+    p_gt_in_est = R.T @ (T_gt[:3, 3] - t) / s
+    R_gt_in_est = R.T @ T_gt[:3, :3]
+    e = np.concatenate((p_gt_in_est - T_est[:3, 3],
+                        geo.quat_to_rotvec(geo.matrix_to_quat(R_gt_in_est @ T_est[:3, :3].T))))
+    return float(e @ np.linalg.solve(cov, e))
+
+
+def run_one(trajectory: str, seed: int, overrides: dict) -> dict:
+    scfg = SynthConfig(frames=200, seed=seed, trajectory=trajectory)
+    frames = list(render_sequence(scfg))
+    cfg = dataclasses.replace(VoConfig(), **overrides).validate()
+    vo = VisualOdometry(cfg, PinholeCamera(scfg.width, scfg.height, scfg.K()), seed=seed)
+    res = [vo.process(img, stamp) for stamp, img, _ in frames]
+    if vo.local_map is not None:
+        vo.local_map.close()
+    ok = [k for k, r in enumerate(res) if r.ok]
+    gt_s = np.array([s * 1e-9 for s, _, _ in frames])
+    gt_T = np.array([T for _, _, T in frames])
+    ev = evaluate(gt_s, gt_T, gt_s[ok], np.array([res[k].T_world_cam for k in ok]),
+                  n_frames_total=len(frames))
+    nees = np.array([frame_nees(ev.T_gt_est_sim3, gt_T[k], res[k].T_world_cam,
+                                res[k].pose_cov) for k in ok])
+    return {'trajectory': trajectory, 'seed': seed, 'pct_tracked': ev.pct_tracked,
+            'ate_pct_path': ev.ate_sim3_pct_of_path, 'resets': vo.n_resets,
+            'nees_mean': float(np.mean(nees)), 'nees_median': float(np.median(nees)),
+            'pct_above_99_9': float(100 * np.mean(nees > 22.46))}   # chi2(6) 99.9 %
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    p.add_argument('--seeds', type=int, default=3)
+    p.add_argument('--trajectories', nargs='+', default=list(TRAJECTORIES),
+                   choices=TRAJECTORIES)
+    p.add_argument('--set', nargs='+', default=[], metavar='NAME=VALUE')
+    p.add_argument('--json', type=Path)
+    args = p.parse_args(argv)
+    try:
+        overrides = parse_overrides(args.set)
+    except ValueError as exc:
+        p.error(str(exc))
+    rows = [run_one(tr, s, overrides) for tr in args.trajectories for s in range(args.seeds)]
+    print(f'{"sequence":<10} {"seed":>4} {"tracked %":>9} {"ATE % path":>10} '
+          f'{"NEES mean":>10} {"median":>8} {"% > 99.9%":>10}')
+    for r in rows:
+        print(f'{r["trajectory"]:<10} {r["seed"]:4d} {r["pct_tracked"]:9.1f} '
+              f'{r["ate_pct_path"]:10.2f} {r["nees_mean"]:10.1f} {r["nees_median"]:8.1f} '
+              f'{r["pct_above_99_9"]:10.1f}')
+    if args.json:
+        write_json(args.json, {'overrides': overrides, 'runs': rows})
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
