@@ -114,8 +114,8 @@ def order_spread(variants: Mapping[str, dict]) -> dict[str, float | None]:
     return out
 
 
-def run(variants: Sequence[str], seeds: int, overrides: Mapping[str, Any],
-        work: Path | None = None) -> dict[str, Any]:
+def run_variants(variants: Sequence[str], seeds: int, overrides: Mapping[str, Any],
+                 work: Path | None = None) -> dict[str, Any]:
     """Build the bags (in ``work`` or a temporary folder) and run every variant x seed."""
     folder = shared_data(SEQUENCE)
     if folder is None:
@@ -142,6 +142,56 @@ def run(variants: Sequence[str], seeds: int, overrides: Mapping[str, Any],
             'jpeg_quality': JPEG_QUALITY, 'machine': machine(),
             'wall_s': time.perf_counter() - t0, 'variants': res,
             'order_spread_ate_pct': order_spread(res)}
+
+
+#: the report's comparison: today's defaults against the points triangulated once
+REPORT_CONFIGS = {'local map (defaults)': {}, 'triangulated once': {'local_map': False}}
+
+
+def run(quick: bool = False, out: Path | None = None) -> dict[str, Any]:
+    """The bench.run_all section: every variant, both configurations (8 seeds; 2 quick)."""
+    if shared_data(SEQUENCE) is None:
+        return {'skipped': f"{SEQUENCE} is not in the developers' data folder"}
+    seeds = 2 if quick else 8
+    return {name: run_variants(list(VARIANTS), seeds, over)
+            for name, over in REPORT_CONFIGS.items()}
+
+
+def summary_rows(res: dict[str, Any]) -> list[list[str]]:
+    """bench.run_all summary: worst ATE over the variants, per configuration."""
+    rows = []
+    for name, r in res.items():
+        s = [v['summary'] for v in r['variants'].values()]
+        worst = max(x['ate_pct_max'] for x in s if x['ate_pct_max'] is not None)
+        first = max(x['first_pose_frame_max'] for x in s
+                    if x['first_pose_frame_max'] is not None)
+        rows.append([f'KITTI 06 raw/JPEG x CameraInfo order, {name}: worst ATE % path, '
+                     f'last first pose', f'{worst:.3f} %, frame {first:.0f}',
+                     'target <= 0.10 %, frame 3', 'met' if worst <= 0.10 and first <= 3
+                     else '**not met**'])
+    return rows
+
+
+def report_section(res: dict[str, Any], quick: bool) -> str:
+    """bench.run_all report section: one table per configuration."""
+    lines = ['## Local map: KITTI 06 f0-50 as recorded bags (bench.local_map)\n',
+             'Four bags through ekf-vo-convert: raw mono8 or JPEG 75, CameraInfo logged before '
+             'or after its image; each run offline (ekf-vo-run\'s run_bag) per seed. ATE after '
+             'Sim(3), % of path; "drift" = mean rotation error from the first pose; the '
+             'order spread is |mean ATE before - after| (docs/method.md §12).\n']
+    for name, r in res.items():
+        lines += [f'\n### {name} ({r["seeds"]} seeds)\n',
+                  '| bag | ATE % mean | ATE % max | ATE % std | drift deg | first pose (max) '
+                  '| lost after it (max) | resets (max) |', '|---|---|---|---|---|---|---|---|']
+        for bag, v in r['variants'].items():
+            s = v['summary']
+            lines.append(f'| {bag} | {_fmt(s["ate_pct_mean"], 3)} | {_fmt(s["ate_pct_max"], 3)} '
+                         f'| {_fmt(s["ate_pct_std"], 3)} | {_fmt(s["rot_drift_mean_deg"])} | '
+                         f'{_fmt(s["first_pose_frame_max"], 0)} | '
+                         f'{_fmt(s["lost_after_first_max"], 0)} | {_fmt(s["resets_max"], 0)} |')
+        spread = ', '.join(f'{k} {_fmt(v, 3)}' for k, v in r['order_spread_ate_pct'].items())
+        lines.append(f'\nOrder spread (ATE % path): {spread}.\n')
+    return '\n'.join(lines) + '\n'
 
 
 def _fmt(v: float | None, p: int = 2) -> str:
@@ -195,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
         overrides = parse_overrides(args.overrides)
         make_config(None, overrides)      # a bad value fails before minutes of conversion
         variants = list(dict.fromkeys(args.variants))
-        res = run(variants, args.seeds, overrides, args.work)
+        res = run_variants(variants, args.seeds, overrides, args.work)
     except (BenchError, ConfigError, ConvertError, RunError) as exc:
         print(f'bench.local_map: error: {exc}', file=sys.stderr)
         return 2

@@ -11,6 +11,8 @@ Sections (one module each, `run(quick, out) -> dict`):
   6 scaling          update time vs points: camera-only EKF vs EKF-SLAM
   7 memory           RSS, map size and frames/s over a 10,000-frame run
   + consistency      NEES on smooth synthetic orbits
+  + local_map        KITTI 06 as raw / JPEG bags, CameraInfo before / after: local map vs
+                     points triangulated once (bench/local_map.py builds its own rows)
 `--quick` (CI) runs every section smaller (fewer runs, frames and sizes); its figures
 are noisier and the report says so. A section that fails is reported and makes the exit
 status non-zero; the others still run.
@@ -31,7 +33,7 @@ from .common import machine, write_json
 logger = logging.getLogger(__name__)
 
 SECTIONS = ('bunny', 'consistency', 'fading_memory', 'precise_points', 'real_compare',
-            'throughput', 'scaling', 'memory')
+            'local_map', 'throughput', 'scaling', 'memory')
 
 
 def _f(x, p: int = 2) -> str:
@@ -175,6 +177,7 @@ SUMMARY_ROWS = (
     ('fading_memory', _rows_fading_memory),
     ('precise_points', _rows_precise_points),
     ('real_compare', _rows_real_compare),
+    ('local_map', lambda r: importlib.import_module('bench.local_map').summary_rows(r)),
     ('throughput', _rows_throughput),
     ('scaling', _rows_scaling),
     ('memory', _rows_memory))
@@ -790,6 +793,8 @@ Papers' figures are the papers' own (docs/method.md cites them). "EKF" is our hy
                 ('fading_memory', lambda: section_fading(R['fading_memory'], quick)),
                 ('precise_points', lambda: section_precise(R['precise_points'], quick)),
                 ('real_compare', lambda: section_real(R['real_compare'], quick)),
+                ('local_map', lambda: importlib.import_module(
+                    'bench.local_map').report_section(R['local_map'], quick)),
                 ('throughput', lambda: section_speed(R['throughput'], quick)),
                 ('scaling', lambda: section_scaling(R['scaling'], quick)),
                 ('memory', lambda: section_memory(R['memory'], quick))]

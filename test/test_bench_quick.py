@@ -107,6 +107,23 @@ def test_real_data_tabulated(quick_run):
             assert _finite(r[e]['ate_pct_path']['mean'], r[e]['pct_tracked']['mean'])
 
 
+def test_local_map_section_tabulated(quick_run):
+    """bench.local_map in the report: both configurations, all four bags, every seed
+    bootstrapped and evaluated."""
+    _, out, res = quick_run
+    if shared_data('kitti06_f0-50') is None:
+        assert 'skipped' in res['local_map']
+        return
+    assert '## Local map: KITTI 06' in (out / 'report.md').read_text()
+    for config in res['local_map'].values():
+        assert set(config['variants']) == {'raw-before', 'raw-after', 'jpeg-before',
+                                           'jpeg-after'}
+        for v in config['variants'].values():
+            s = v['summary']
+            assert s['no_pose'] == 0 and s['no_eval'] == 0
+            assert _finite(s['ate_pct_mean'], s['ate_pct_max'])
+
+
 def test_without_the_data_folder_the_data_sections_skip_and_the_run_succeeds(tmp_path,
                                                                              monkeypatch):
     """A user's fresh clone has no data folder: `make bench-quick` must still succeed."""
