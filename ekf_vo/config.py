@@ -247,6 +247,21 @@ class VoConfig(_Params):
         'per-point independent noise ignores the error the points share (bench.local_map).',
         group='local_map')
 
+    # ---- measurement noise (ekf_vo/core/noise_model.py) ----
+    measurement_noise: str = param(
+        'fixed', 'fixed: every map point has pixel_sigma_px; adaptive: each landmark\'s '
+        'sigma is pixel_sigma_px times a factor learned from its own residuals '
+        '(docs/method.md §13).', choices=('fixed', 'adaptive'), group='noise')
+    noise_prior_dof: float = param(
+        2.0, 'adaptive: weight of the nominal sigma, in residual components (a young '
+        'landmark is shrunk toward it).', 'count', 0.1, 1000.0, group='noise')
+    noise_min_scale: float = param(
+        0.1, 'adaptive: floor of a landmark\'s sigma / pixel_sigma_px.', '', 0.01, 1.0,
+        group='noise')
+    noise_max_scale: float = param(
+        10.0, 'adaptive: cap of a landmark\'s sigma / pixel_sigma_px.', '', 1.0, 1000.0,
+        group='noise')
+
     # ---- in-filter map refinement (ekf_vo/core/point_filter.py) ----
     map_refinement: str = param(
         'none', 'none: new points are triangulated once (hybrid, docs/method.md §1); '

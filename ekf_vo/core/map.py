@@ -46,6 +46,9 @@ class LandmarkMap:
         self._cov = np.zeros((cap, 3, 3))
         self._desc = np.zeros((cap, 32), np.uint8)     # ORB, for finding it again
         self._has_desc = np.zeros(cap, bool)
+        # residuals seen (noise_model.py): components and sum of normalised squares
+        self._noise_dof = np.zeros(cap)
+        self._noise_sum = np.zeros(cap)
         self._n_obs = np.zeros(cap, np.int32)
         self._misses = np.zeros(cap, np.int32)
         self._last_seen = np.zeros(cap, np.int64)
@@ -74,7 +77,8 @@ class LandmarkMap:
         if need <= cap:
             return
         new = max(need, 2 * cap)
-        for name in ('_ids', '_n_obs', '_misses', '_last_seen', '_has_desc'):
+        for name in ('_ids', '_n_obs', '_misses', '_last_seen', '_has_desc', '_noise_dof',
+                     '_noise_sum'):
             arr = getattr(self, name)
             out = np.zeros(new, arr.dtype)
             out[:cap] = arr
@@ -103,6 +107,8 @@ class LandmarkMap:
             self._X[row] = X
             self._cov[row] = C
             self._has_desc[row] = False
+            self._noise_dof[row] = 0.0
+            self._noise_sum[row] = 0.0
             self._n_obs[row] = n_obs
             self._misses[row] = 0
             self._last_seen[row] = frame_index
@@ -133,6 +139,18 @@ class LandmarkMap:
             self._changed.add(int(lid))
             n += 1
         return n
+
+    def noise_record(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residual components seen and their sum of normalised squares (n,), (n,) of
+        landmarks `ids` (all in the map), for noise_model.noise_scales."""
+        rows = np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+        return self._noise_dof[rows], self._noise_sum[rows]
+
+    def add_residuals(self, ids: np.ndarray, normalised_sq: np.ndarray) -> None:
+        """Record one update's normalised squared residuals (2 components each)."""
+        rows = np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+        self._noise_dof[rows] += 2.0
+        self._noise_sum[rows] += normalised_sq
 
     def set_descriptors(self, ids: np.ndarray, desc: np.ndarray) -> None:
         """Binary descriptors (n,32) uint8 of landmarks `ids` (the latest keyframe's)."""
@@ -173,7 +191,8 @@ class LandmarkMap:
             if row != last:
                 moved = int(self._ids[last])
                 for arr in (self._ids, self._X, self._cov, self._desc, self._has_desc,
-                            self._n_obs, self._misses, self._last_seen):
+                            self._noise_dof, self._noise_sum, self._n_obs, self._misses,
+                            self._last_seen):
                     arr[row] = arr[last]
                 self._row[moved] = row
             self._size -= 1

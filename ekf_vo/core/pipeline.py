@@ -35,6 +35,7 @@ from .local_ba import point_covariances
 from .local_map import LocalMapper
 from .map import LandmarkMap
 from .multiview import MultiViewBootstrap
+from .noise_model import NoiseSettings, explained_px2, noise_scales, normalised_squares
 from .observation import projected_variance_px2
 from .refind import Describer, match_in_windows
 from .point_filter import PointFilter
@@ -105,6 +106,7 @@ class VisualOdometry:
         self.map = LandmarkMap(cfg.max_map_points, cfg.cull_after_misses)
         # keyframes + windowed adjustment (docs/method.md §12); None = points never refined
         self.local_map = LocalMapper(cfg, camera.K) if cfg.local_map else None
+        self._noise = NoiseSettings.from_config(cfg)
         self.describer = Describer() if cfg.local_map and cfg.refind_map_points else None
         self.rng = np.random.default_rng(seed)
         # in-filter map refinement (docs/method.md §8); None = the hybrid default
@@ -485,15 +487,31 @@ class VisualOdometry:
         return np.concatenate((predicted[0], ids)), np.concatenate((predicted[1], px_pred))
 
     def _map_sigmas(self, ids: np.ndarray, X: np.ndarray) -> np.ndarray | None:
-        """Pixel std of each map measurement: the pixel noise plus the point's own
-        uncertainty projected at the predicted pose (docs/method.md §12.3); None when
-        points are treated as exact (map_point_uncertainty off)."""
+        """Pixel std of each map measurement: the pixel noise (times the landmark's own
+        learned factor with measurement_noise: adaptive, docs/method.md §13), plus the
+        point's position uncertainty projected at the predicted pose with
+        map_point_uncertainty (§12.3); None = pixel_sigma_px for all."""
         c = self.cfg
-        if not c.map_point_uncertainty or not len(ids):
+        adaptive = c.measurement_noise == 'adaptive'
+        if not len(ids) or not (adaptive or c.map_point_uncertainty):
             return None
-        var = projected_variance_px2(X, self.map.covariances(ids), self.ekf.T_world_cam,
-                                     self.camera.K)
-        return np.sqrt(c.pixel_sigma_px ** 2 + var)
+        sigma = np.full(len(ids), c.pixel_sigma_px)
+        if adaptive:
+            sigma *= noise_scales(*self.map.noise_record(ids), self._noise)
+        if c.map_point_uncertainty:
+            var = projected_variance_px2(X, self.map.covariances(ids),
+                                         self.ekf.T_world_cam, self.camera.K)
+            sigma = np.sqrt(sigma ** 2 + var)
+        return sigma
+
+    def _learn_noise(self, ids: np.ndarray, z: np.ndarray, X: np.ndarray) -> None:
+        """measurement_noise: adaptive: the update's map inliers teach their landmarks'
+        noise from the a posteriori residuals (docs/method.md §13)."""
+        if self.cfg.measurement_noise != 'adaptive' or not len(ids):
+            return
+        px, front, H = self.ekf.observe(X)
+        e = normalised_squares(z - px, explained_px2(H, self.ekf.P), self.cfg.pixel_sigma_px)
+        self.map.add_residuals(ids[front], e[front])
 
     def _two_view_covariances(self, X_world: np.ndarray, T_world_a: np.ndarray,
                               T_world_b: np.ndarray) -> np.ndarray:
@@ -515,6 +533,8 @@ class VisualOdometry:
             f_tracks = np.flatnonzero(pt_rows >= 0)
             matches.z_points, matches.point_rows = px[f_tracks], pt_rows[f_tracks]
         out = self.estimator.update(matches, self.rng)
+        inl = out.map_inliers
+        self._learn_noise(tracks.ids[rows][inl], px[rows][inl], X[inl])
         if len(rows):
             culled = self.map.record_observations(tracks.ids[rows], out.map_inliers,
                                                   self.frame_index)
