@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import VoConfig
+from .observation import projected_variance_px2
 
 
 @dataclass
@@ -72,3 +73,33 @@ def explained_px2(H: np.ndarray, P: np.ndarray) -> np.ndarray:
     HP = H @ P
     per_row = np.einsum('ij,ij->i', HP, H)
     return per_row[0::2] + per_row[1::2]
+
+
+def map_measurement_sigmas(cfg: VoConfig, settings: NoiseSettings, landmarks, ids: np.ndarray,
+                           X: np.ndarray, T_world_cam: np.ndarray, K: np.ndarray
+                           ) -> np.ndarray | None:
+    """Pixel std of each map measurement: pixel_sigma_px, times the landmark's learned
+    factor with measurement_noise: adaptive, plus the point's position uncertainty
+    projected at the pose T_world_cam with map_point_uncertainty (docs/method.md
+    §12.3). None = pixel_sigma_px for all (neither option on)."""
+    adaptive = cfg.measurement_noise == 'adaptive'
+    if not len(ids) or not (adaptive or cfg.map_point_uncertainty):
+        return None
+    sigma = np.full(len(ids), cfg.pixel_sigma_px)
+    if adaptive:
+        sigma *= noise_scales(*landmarks.noise_record(ids), settings)
+    if cfg.map_point_uncertainty:
+        var = projected_variance_px2(X, landmarks.covariances(ids), T_world_cam, K)
+        sigma = np.sqrt(sigma ** 2 + var)
+    return sigma
+
+
+def learn_from_update(landmarks, ekf, ids: np.ndarray, z_px: np.ndarray, X: np.ndarray,
+                      nominal_px: float) -> None:
+    """An update's map inliers (ids, measured IDEAL pixels z_px, points X) teach their
+    landmarks' noise from the a posteriori residuals at the filter's state."""
+    if not len(ids):
+        return
+    px, front, H = ekf.observe(X)
+    e = normalised_squares(z_px - px, explained_px2(H, ekf.P), nominal_px)
+    landmarks.add_residuals(ids[front], e[front])

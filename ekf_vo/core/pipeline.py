@@ -21,7 +21,6 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from ..config import VoConfig
@@ -35,9 +34,8 @@ from .local_ba import point_covariances
 from .local_map import LocalMapper
 from .map import LandmarkMap
 from .multiview import MultiViewBootstrap
-from .noise_model import NoiseSettings, explained_px2, noise_scales, normalised_squares
-from .observation import projected_variance_px2
-from .refind import Describer, match_in_windows
+from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
+from .refind import MapPointFinder
 from .point_filter import PointFilter
 from .triangulation import triangulate_points
 
@@ -107,7 +105,9 @@ class VisualOdometry:
         # keyframes + windowed adjustment (docs/method.md §12); None = points never refined
         self.local_map = LocalMapper(cfg, camera.K) if cfg.local_map else None
         self._noise = NoiseSettings.from_config(cfg)
-        self.describer = Describer() if cfg.local_map and cfg.refind_map_points else None
+        # map points found again by descriptor (docs/method.md §12.5); None = off
+        self.finder = MapPointFinder(cfg) if cfg.local_map and cfg.refind_map_points \
+            else None
         self.rng = np.random.default_rng(seed)
         # in-filter map refinement (docs/method.md §8); None = the hybrid default
         self.points: PointFilter | None = None
@@ -272,8 +272,8 @@ class VisualOdometry:
             for f, ids, src_px, T in sources:
                 self.local_map.add_keyframe(f, T, ids, src_px)
             self.local_map.add_keyframe(self.frame_index, T_world_cur, tracks.ids, px)
-        if self.describer is not None:
-            self._describe(self._gray, tracks)
+        if self.finder is not None:
+            self.finder.describe(self._gray, tracks, self.map)
         res.bootstrapped = True
         self._fill_output(res, tracks, has_point, has_point)
 
@@ -329,16 +329,7 @@ class VisualOdometry:
 
         t = time.perf_counter()
         self.estimator.predict(dt)
-        # predicted landmark pixels = the KLT initial guess (active search, Davison 2003)
-        prev_ids = self._prev_ids
-        mask, X_prev = self.map.lookup(prev_ids)
-        predicted = None
-        if np.any(mask):
-            px_pred, front, _ = self.ekf.observe(X_prev, with_jacobian=False)
-            ok = front & np.all(np.isfinite(px_pred), axis=1)
-            predicted = (prev_ids[mask][ok], self.camera.distort(px_pred[ok]))
-        if self.points is not None and len(self.points):
-            predicted = self._add_filter_predictions(predicted)
+        predicted = self._predicted_pixels()
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -354,7 +345,8 @@ class VisualOdometry:
             rows, X = rows[keep], X[keep]
         res = FrameResult(stamp_ns, TrackingState.TRACKING, n_tracks=len(tracks),
                           n_matches=len(rows), timings_ms=timings)
-        sigma = self._map_sigmas(tracks.ids[rows], X)
+        sigma = map_measurement_sigmas(self.cfg, self._noise, self.map, tracks.ids[rows],
+                                       X, self.ekf.T_world_cam, self.camera.K)
         try:
             inlier_rows = self._update(tracks, px, rows, X, sigma)
         except (FilterError, np.linalg.LinAlgError) as exc:
@@ -384,92 +376,58 @@ class VisualOdometry:
             res.state, res.message = self.state, f'lost: {why}'
             return res
 
-        # ---- map growth
+        # ---- map growth, keyframes
         t = time.perf_counter()
-        T_world_cam = self.ekf.T_world_cam
-        self._T_world_cam_at[self.frame_index] = T_world_cam
-        grow_mask = has_point
-        if self.points is not None:
-            n_frozen, grow_mask = self._refine_points(tracks, px, rows, X, T_world_cam)
-            res.n_new_points += n_frozen
-        res.n_new_points += self._grow_map(tracks, px, grow_mask, T_world_cam)
         inlier_mask = np.zeros(len(tracks), bool)
         inlier_mask[inlier_rows] = True
+        res.n_new_points += self._after_update(gray, tracks, px, rows, X, has_point,
+                                               inlier_mask)
+        timings['map'] = (time.perf_counter() - t) * 1e3
+        res.ok = self._failed_frames == 0
+        self._fill_output(res, tracks, has_point, inlier_mask)
+        if self.finder is not None:
+            t = time.perf_counter()
+            found = self.finder.find_again(gray, tracks, self.map, self.ekf, self.camera,
+                                           self.tracker, self.rng)
+            res.n_found_again = len(found)
+            self._prev_ids = np.union1d(self._prev_ids, found)
+            timings['refind'] = (time.perf_counter() - t) * 1e3
+        return res
+
+    def _predicted_pixels(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(ids, raw pixels) where the prior puts the last frame's tracks that have a map
+        or in-filter point: the KLT initial guess (active search, Davison 2003)."""
+        prev_ids = self._prev_ids
+        mask, X_prev = self.map.lookup(prev_ids)
+        predicted = None
+        if np.any(mask):
+            px_pred, front, _ = self.ekf.observe(X_prev, with_jacobian=False)
+            ok = front & np.all(np.isfinite(px_pred), axis=1)
+            predicted = (prev_ids[mask][ok], self.camera.distort(px_pred[ok]))
+        if self.points is not None and len(self.points):
+            predicted = self._add_filter_predictions(predicted)
+        return predicted
+
+    def _after_update(self, gray: np.ndarray, tracks: Tracks, px: np.ndarray,
+                      rows: np.ndarray, X: np.ndarray, has_point: np.ndarray,
+                      inlier_mask: np.ndarray) -> int:
+        """Map growth (in-filter points, triangulation) and the keyframe decision of a
+        tracked frame. Returns the number of new map points."""
+        T_world_cam = self.ekf.T_world_cam
+        self._T_world_cam_at[self.frame_index] = T_world_cam
+        grow_mask, n_new = has_point, 0
+        if self.points is not None:
+            n_new, grow_mask = self._refine_points(tracks, px, rows, X, T_world_cam)
+        n_new += self._grow_map(tracks, px, grow_mask, T_world_cam)
         if self.local_map is not None:
             # a keyframe keeps the update's inliers and the tracks that had no point
             # then (new points, candidates); the update's outliers stay out of the window
             keep = inlier_mask | ~has_point
             if self.local_map.consider(self.frame_index, T_world_cam, tracks.ids[keep],
                                        px[keep], self.map.contains(tracks.ids[keep]),
-                                       self.map):
-                self._describe(gray, tracks)
-        timings['map'] = (time.perf_counter() - t) * 1e3
-        res.ok = self._failed_frames == 0
-        self._fill_output(res, tracks, has_point, inlier_mask)
-        if self.describer is not None:
-            t = time.perf_counter()
-            found = self._find_again(gray, tracks)
-            res.n_found_again = len(found)
-            self._prev_ids = np.union1d(self._prev_ids, found)
-            timings['refind'] = (time.perf_counter() - t) * 1e3
-        return res
-
-    # ------------------------------------------------------------------ found again
-    def _describe(self, gray: np.ndarray, tracks: Tracks) -> None:
-        """A keyframe's ORB descriptors for the map points it tracks (§12.5)."""
-        if self.describer is None:
-            return
-        has_point = self.map.contains(tracks.ids)
-        desc, rows = self.describer.describe(gray, tracks.px[has_point])
-        self.map.set_descriptors(tracks.ids[has_point][rows], desc)
-
-    def _find_again(self, gray: np.ndarray, tracks: Tracks) -> np.ndarray:
-        """Map points the updated pose puts in the image without a live track, searched
-        by descriptor around their predicted pixel; matches become tracks that the next
-        frames measure (§12.5: searched after the update, where the pose is known to a
-        few pixels, not with the prior). Returns the ids found."""
-        c = self.cfg
-        ids, X, desc = self.map.described()
-        lost = ~np.isin(ids, tracks.ids)
-        ids, X, desc = ids[lost], X[lost], desc[lost]
-        none = np.zeros(0, np.int64)
-        if not len(ids):
-            return none
-        px_ideal, front, H = self.ekf.observe(X)
-        h, w = gray.shape[:2]
-        raw = self.camera.distort(px_ideal)
-        m = 16.0
-        inside = front & np.all(np.isfinite(raw), axis=1) & (raw[:, 0] >= m) & \
-            (raw[:, 0] < w - m) & (raw[:, 1] >= m) & (raw[:, 1] < h - m)
-        rows = np.flatnonzero(inside)
-        if len(rows) > c.refind_max_points:
-            rows = np.sort(self.rng.choice(rows, c.refind_max_points, replace=False))
-        if not len(rows):
-            return none
-        # innovation covariance of each point: H P H^T + sigma^2 I, its largest axis
-        Hn = H.reshape(-1, 2, H.shape[1])[rows]
-        S = Hn @ self.ekf.P @ np.transpose(Hn, (0, 2, 1)) + np.eye(2) * c.pixel_sigma_px ** 2
-        tr, det = S[:, 0, 0] + S[:, 1, 1], np.linalg.det(S)
-        big = tr / 2 + np.sqrt(np.maximum(tr ** 2 / 4 - det, 0))
-        radius = c.refind_search_sigmas * np.sqrt(big)
-        searched = radius <= c.refind_max_radius_px
-        rows, radius = rows[searched], np.maximum(radius[searched], c.refind_min_radius_px)
-        if not len(rows):
-            return none
-        # FAST corners in the search windows, away from the live tracks
-        mask = np.zeros((h, w), np.uint8)
-        for (u, v), r in zip(raw[rows], radius):
-            cv2.circle(mask, (int(round(u)), int(round(v))), int(np.ceil(r)), 255, -1)
-        for u, v in tracks.px:
-            cv2.circle(mask, (int(round(u)), int(round(v))),
-                       int(self.cfg.min_feature_distance_px), 0, -1)
-        corners = self.describer.corners(gray, mask)
-        corner_desc, ok = self.describer.describe(gray, corners)
-        match = match_in_windows(raw[rows], radius, desc[rows], corners[ok], corner_desc,
-                                 c.refind_max_hamming)
-        found = match >= 0
-        self.tracker.adopt(ids[rows][found], corners[ok][match[found]])
-        return ids[rows][found]
+                                       self.map) and self.finder is not None:
+                self.finder.describe(gray, tracks, self.map)
+        return n_new
 
     # ------------------------------------------------------------------ point filter
     def _add_filter_predictions(self, predicted):
@@ -485,33 +443,6 @@ class VisualOdometry:
         if predicted is None:
             return ids, px_pred
         return np.concatenate((predicted[0], ids)), np.concatenate((predicted[1], px_pred))
-
-    def _map_sigmas(self, ids: np.ndarray, X: np.ndarray) -> np.ndarray | None:
-        """Pixel std of each map measurement: the pixel noise (times the landmark's own
-        learned factor with measurement_noise: adaptive, docs/method.md §13), plus the
-        point's position uncertainty projected at the predicted pose with
-        map_point_uncertainty (§12.3); None = pixel_sigma_px for all."""
-        c = self.cfg
-        adaptive = c.measurement_noise == 'adaptive'
-        if not len(ids) or not (adaptive or c.map_point_uncertainty):
-            return None
-        sigma = np.full(len(ids), c.pixel_sigma_px)
-        if adaptive:
-            sigma *= noise_scales(*self.map.noise_record(ids), self._noise)
-        if c.map_point_uncertainty:
-            var = projected_variance_px2(X, self.map.covariances(ids),
-                                         self.ekf.T_world_cam, self.camera.K)
-            sigma = np.sqrt(sigma ** 2 + var)
-        return sigma
-
-    def _learn_noise(self, ids: np.ndarray, z: np.ndarray, X: np.ndarray) -> None:
-        """measurement_noise: adaptive: the update's map inliers teach their landmarks'
-        noise from the a posteriori residuals (docs/method.md §13)."""
-        if self.cfg.measurement_noise != 'adaptive' or not len(ids):
-            return
-        px, front, H = self.ekf.observe(X)
-        e = normalised_squares(z - px, explained_px2(H, self.ekf.P), self.cfg.pixel_sigma_px)
-        self.map.add_residuals(ids[front], e[front])
 
     def _two_view_covariances(self, X_world: np.ndarray, T_world_a: np.ndarray,
                               T_world_b: np.ndarray) -> np.ndarray:
@@ -533,8 +464,10 @@ class VisualOdometry:
             f_tracks = np.flatnonzero(pt_rows >= 0)
             matches.z_points, matches.point_rows = px[f_tracks], pt_rows[f_tracks]
         out = self.estimator.update(matches, self.rng)
-        inl = out.map_inliers
-        self._learn_noise(tracks.ids[rows][inl], px[rows][inl], X[inl])
+        if self.cfg.measurement_noise == 'adaptive':
+            inl = out.map_inliers
+            learn_from_update(self.map, self.ekf, tracks.ids[rows][inl], px[rows][inl],
+                              X[inl], self.cfg.pixel_sigma_px)
         if len(rows):
             culled = self.map.record_observations(tracks.ids[rows], out.map_inliers,
                                                   self.frame_index)

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..config import VoConfig
+
 #: ORB's descriptor patch (31 px) needs this much room from the image border
 _ORB_BORDER_PX = 16
 #: Shi-Tomasi quality level of the candidates (relative to the strongest corner in the
@@ -29,13 +31,8 @@ _CORNER_QUALITY = 0.001
 _RATIO = 0.8
 
 
-@dataclass
-class RefindResult:
-    """Map points found again in one frame."""
-
-    ids: np.ndarray      #: (k,) landmark ids
-    px: np.ndarray       #: (k,2) RAW pixels of their matches
-    n_searched: int = 0  #: map points predicted in the image and searched for
+#: map points are searched for only this far inside the image (the descriptor's patch)
+_SEARCH_MARGIN_PX = 16.0
 
 
 def _keypoints(px: np.ndarray) -> list:
@@ -100,3 +97,70 @@ def match_in_windows(pred_px: np.ndarray, radius_px: np.ndarray, desc: np.ndarra
     taken, counts = np.unique(out[out >= 0], return_counts=True)
     out[np.isin(out, taken[counts > 1])] = -1
     return out
+
+
+class MapPointFinder:
+    """Keyframe descriptors of the map points, and the per-frame search for the lost ones."""
+
+    def __init__(self, cfg: VoConfig) -> None:
+        self.cfg = cfg
+        self.describer = Describer()
+
+    def describe(self, gray: np.ndarray, tracks, landmarks) -> None:
+        """A keyframe's ORB descriptors for the map points its tracks carry."""
+        has_point = landmarks.contains(tracks.ids)
+        desc, rows = self.describer.describe(gray, tracks.px[has_point])
+        landmarks.set_descriptors(tracks.ids[has_point][rows], desc)
+
+    def _search_windows(self, X: np.ndarray, ekf, camera, shape, rng
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rows of X searched, their predicted RAW pixels, radii): points the updated
+        pose puts inside the image, window = refind_search_sigmas x the innovation's
+        largest axis (H P H^T + sigma^2 I), bounded."""
+        c = self.cfg
+        px_ideal, front, H = ekf.observe(X)
+        raw = camera.distort(px_ideal)
+        h, w = shape
+        m = _SEARCH_MARGIN_PX
+        inside = front & np.all(np.isfinite(raw), axis=1) & (raw[:, 0] >= m) & \
+            (raw[:, 0] < w - m) & (raw[:, 1] >= m) & (raw[:, 1] < h - m)
+        rows = np.flatnonzero(inside)
+        if len(rows) > c.refind_max_points:
+            rows = np.sort(rng.choice(rows, c.refind_max_points, replace=False))
+        Hn = H.reshape(-1, 2, H.shape[1])[rows]
+        S = Hn @ ekf.P @ np.transpose(Hn, (0, 2, 1)) + np.eye(2) * c.pixel_sigma_px ** 2
+        tr, det = S[:, 0, 0] + S[:, 1, 1], np.linalg.det(S)
+        radius = c.refind_search_sigmas * np.sqrt(tr / 2 + np.sqrt(np.maximum(
+            tr ** 2 / 4 - det, 0)))
+        ok = radius <= c.refind_max_radius_px          # a wider prior is too ambiguous
+        return rows[ok], raw[rows[ok]], np.maximum(radius[ok], c.refind_min_radius_px)
+
+    def find_again(self, gray: np.ndarray, tracks, landmarks, ekf, camera, tracker,
+                   rng: np.random.Generator) -> np.ndarray:
+        """Map points the updated pose puts in the image without a live track, searched
+        by descriptor around their predicted pixel; the matches become tracks (the
+        tracker adopts them) that the next frames measure. Searched after the update,
+        where the pose is known to a few pixels: with the prior, the windows on KITTI at
+        10 Hz were ~150 px wide. Returns the ids found."""
+        ids, X, desc = landmarks.described()
+        lost = ~np.isin(ids, tracks.ids)
+        ids, X, desc = ids[lost], X[lost], desc[lost]
+        if not len(ids):
+            return np.zeros(0, np.int64)
+        rows, pred, radius = self._search_windows(X, ekf, camera, gray.shape[:2], rng)
+        if not len(rows):
+            return np.zeros(0, np.int64)
+        # Shi-Tomasi corners in the search windows, away from the live tracks
+        mask = np.zeros(gray.shape[:2], np.uint8)
+        for (u, v), r in zip(pred, radius):
+            cv2.circle(mask, (int(round(u)), int(round(v))), int(np.ceil(r)), 255, -1)
+        for u, v in tracks.px:
+            cv2.circle(mask, (int(round(u)), int(round(v))),
+                       int(self.cfg.min_feature_distance_px), 0, -1)
+        corners = self.describer.corners(gray, mask)
+        corner_desc, ok = self.describer.describe(gray, corners)
+        match = match_in_windows(pred, radius, desc[rows], corners[ok], corner_desc,
+                                 self.cfg.refind_max_hamming)
+        found = match >= 0
+        tracker.adopt(ids[rows][found], corners[ok][match[found]])
+        return ids[rows][found]
