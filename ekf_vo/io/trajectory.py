@@ -221,3 +221,45 @@ def read_trajectory(path: PathLike, topic: str = GT_TOPIC) -> tuple[np.ndarray, 
     if is_bag_path(path):
         return read_gt_from_bag(path, topic)
     return read_tum(path)
+
+
+_COV_HEADER = ('# stamp c00 c01 ... c55: 6x6 pose covariance, row-major, (x y z, rotation '
+               'about the world x y z axes) of the TUM poses with the same stamps')
+
+
+def write_covariances(path: PathLike, stamps_s: np.ndarray, cov: np.ndarray) -> None:
+    """Write each pose's 6x6 covariance beside a TUM file: one line per stamp, `stamp`
+    then 36 numbers row-major, in the convention of nav_msgs/Odometry's pose covariance
+    (position, then rotation vector about the parent frame's fixed axes)."""
+    stamps = np.asarray(stamps_s, np.float64).reshape(-1)
+    cov = np.asarray(cov, np.float64).reshape(-1, 6, 6)
+    if len(stamps) != len(cov):
+        raise ValueError(f'{len(stamps)} stamps but {len(cov)} covariances')
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = [_COV_HEADER]
+    for s, c in zip(stamps, cov):
+        stamp = np.format_float_positional(s, unique=True, trim='-')
+        lines.append(stamp + ' ' + ' '.join(f'{v:.9e}' for v in c.ravel()))
+    path.write_text('\n'.join(lines) + '\n', encoding='utf-8')
+
+
+def read_covariances(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps (N,), covariances (N,6,6)) of a file written by `write_covariances`.
+    Raises ValueError on a malformed line (its number in the message)."""
+    stamps, covs = [], []
+    for k, line in enumerate(Path(path).read_text(encoding='utf-8').splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith('#'):
+            continue
+        vals = line.split()
+        if len(vals) != 37:
+            raise ValueError(f'{path}:{k}: expected a stamp and 36 numbers, got {len(vals)}')
+        row = np.array([float(v) for v in vals])
+        if not np.all(np.isfinite(row)):
+            raise ValueError(f'{path}:{k}: non-finite value')
+        stamps.append(row[0])
+        covs.append(row[1:].reshape(6, 6))
+    if not stamps:
+        raise ValueError(f'{path}: no covariance')
+    return np.array(stamps), np.array(covs)

@@ -414,6 +414,11 @@ def _build_parser() -> argparse.ArgumentParser:
                    help='with --json, also include the per-pose arrays')
     p.add_argument('--plot', metavar='FILE.png', default=None,
                    help='write a top-view + error-over-time figure')
+    p.add_argument('--cov', metavar='EST.cov', default=None,
+                   help='the poses\' covariances (ekf-vo-run --cov): adds the rotation NEES '
+                   '(orientation aligned at the first pose; docs/method.md §11.2)')
+    p.add_argument('--nees-plot', metavar='FILE.png', default=None,
+                   help='with --cov: rotation error against 3 sigma, and the NEES, over time')
     p.add_argument('-v', '--verbose', action='store_true', help='debug logging')
     return p
 
@@ -435,7 +440,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = _build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format='%(levelname)s %(name)s: %(message)s')
-    for p in (args.gt, args.est):
+    if args.nees_plot and not args.cov:
+        print('ekf-vo-eval: error: --nees-plot needs --cov', file=sys.stderr)
+        return 2
+    for p in (args.gt, args.est) + ((args.cov,) if args.cov else ()):
         if not Path(p).exists():
             print(f'ekf-vo-eval: error: {p} does not exist', file=sys.stderr)
             return 2
@@ -453,6 +461,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         est_stamps, est_T = read_trajectory(args.est)
         res = evaluate(gt_stamps, gt_T, est_stamps, est_T,
                        max_time_diff_s=args.max_diff, n_frames_total=args.frames)
+        nees = None
+        if args.cov:
+            from ..io.trajectory import read_covariances
+            from .consistency import rotation_nees
+            nees = rotation_nees(gt_stamps, gt_T, est_stamps, est_T,
+                                 *read_covariances(args.cov), args.max_diff)
     except (ValueError, EvaluationError) as exc:
         print(f'ekf-vo-eval: error: {exc}', file=sys.stderr)
         return 1
@@ -462,10 +476,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 1
     if args.plot:
         plot_result(res, args.plot, title=f'{Path(args.est).name} vs {Path(args.gt).name}')
+    if args.nees_plot:
+        from .consistency import plot_rotation_nees
+        plot_rotation_nees(nees, args.nees_plot, title=f'{Path(args.est).name}')
     if args.json:
-        print(json.dumps(res.to_dict(include_arrays=args.json_arrays), indent=2))
+        out = res.to_dict(include_arrays=args.json_arrays)
+        out.update(nees.to_dict() if nees is not None else {})
+        print(json.dumps(out, indent=2))
     else:
         print(format_table(res))
+        if nees is not None:
+            print(f'rotation NEES (3 dof, 3 ideal; orientation aligned at the first pose): '
+                  f'mean {nees.mean:.2f}, median {nees.median:.2f}, '
+                  f'{nees.pct_above_999:.1f} % of {nees.n_frames} frames above the 99.9 % '
+                  f'bound')
         if args.plot:
             print(f'plot: {args.plot}')
     return 0

@@ -134,6 +134,8 @@ class RunSummary:
     n_resets: int = 0
     n_camera_changes: int = 0
     est_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    #: (N, 6, 6) their published covariances (position, world rotation vector)
+    est_pose_cov: list = field(default_factory=list, repr=False)
     est_T_world_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)),
                                         repr=False)
     frame_stats: list[FrameStats] = field(default_factory=list, repr=False)
@@ -264,6 +266,7 @@ def run_bag(bag: str | Path,
             gt_topic: str | None = None, limit: int | None = None,
             gt_bootstrap: bool = False, out_tum: str | Path | None = None,
             stats_csv: str | Path | None = None, progress: bool = False,
+            out_cov: str | Path | None = None,
             max_time_diff_s: float = 0.01, seed: int = 0) -> RunSummary:
     """Run :class:`ekf_vo.core.pipeline.VisualOdometry` on a bag (see the module docstring).
 
@@ -276,6 +279,8 @@ def run_bag(bag: str | Path,
         gt_bootstrap: pass the ground truth at the image stamp as ``known_T_world_cam``
             while the state is ``initialising``.
         out_tum: write the trajectory (ok frames) here, TUM format.
+        out_cov: write each of those poses' 6x6 covariance here (io.trajectory.
+            write_covariances: the stamp and 36 numbers per line).
         stats_csv: write per-frame statistics here.
         progress: tqdm progress bar on stderr.
         max_time_diff_s: association tolerance of the evaluation and of the ground-truth
@@ -324,6 +329,10 @@ def run_bag(bag: str | Path,
     if out_tum is not None:
         from ..io.trajectory import write_tum
         write_tum(out_tum, summary.est_stamps_s, summary.est_T_world_cam)
+    if out_cov is not None:
+        from ..io.trajectory import write_covariances
+        write_covariances(out_cov, summary.est_stamps_s,
+                          np.array(summary.est_pose_cov).reshape(-1, 6, 6))
     if stats_csv is not None:
         write_stats_csv(stats_csv, summary.frame_stats)
     if gt_topic is not None:
@@ -384,6 +393,7 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
         if res.ok and res.T_world_cam is not None:
             stamps_s.append(stamp_ns * 1e-9)
             poses.append(np.asarray(res.T_world_cam, dtype=np.float64))
+            summary.est_pose_cov.append(np.asarray(res.pose_cov, dtype=np.float64))
 
     t0 = time.perf_counter()
     for topic, msgtype, log_ns, msg in iter_bag(bag, [summary.image_topic,
@@ -525,6 +535,9 @@ def build_parser() -> argparse.ArgumentParser:
                    'in the image topic\'s namespace, else the first one)')
     p.add_argument('--gt-topic', default=None,
                    help=f'ground-truth PoseStamped topic (default {GT_TOPIC} when present)')
+    p.add_argument('--cov', type=Path, default=None, metavar='EST.cov',
+                   help='each pose\'s 6x6 covariance (stamp + 36 numbers, row-major, '
+                   'position then rotation about the world axes), for ekf-vo-eval --cov')
     p.add_argument('--stats', type=Path, default=None, metavar='stats.csv',
                    help='per-frame statistics CSV')
     p.add_argument('--json', type=Path, default=None, metavar='summary.json',
@@ -552,13 +565,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         overrides = parse_overrides([item for group in args.overrides for item in group])
         for option, path in (('-o', args.output), ('--stats', args.stats),
-                             ('--json', args.json)):
+                             ('--json', args.json), ('--cov', args.cov)):
             if path is not None:
                 check_writable(path, option)    # before the bag, not after it
         summary = run_bag(args.bag, args.params, overrides, image_topic=args.image_topic,
                           info_topic=args.info_topic, gt_topic=args.gt_topic,
                           limit=args.limit, gt_bootstrap=args.gt_bootstrap,
-                          out_tum=args.output, stats_csv=args.stats,
+                          out_tum=args.output, stats_csv=args.stats, out_cov=args.cov,
                           progress=not args.quiet, max_time_diff_s=args.max_time_diff,
                           seed=args.seed)
     except (RunError, ConfigError, UsageError) as exc:

@@ -1,0 +1,105 @@
+"""Rotation NEES of published poses against a ground truth: is the covariance honest?
+
+docs/method.md §11.2. Each estimated pose's rotation error against the ground truth, with
+the orientation aligned at the first associated frame (R_align = R_gt,0 R_est,0^T: a
+position-based alignment says little about orientation when the camera barely moves),
+is compared with the rotation block of its published covariance:
+
+    e_k = log(R_gt,k (R_align R_est,k)^T)         world-frame rotation vector [rad]
+    NEES_k = e_k^T (R_align Sigma_rot,k R_align^T)^-1 e_k     (3 dof)
+
+An honest covariance gives a mean of 3 (median 2.37), and 0.1 % of the frames above the
+chi-square(3) 99.9 % bound, 16.27. Poses and covariances are associated by stamp.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..core import geometry as geo
+
+#: chi-square(3) 99.9 % quantile
+CHI2_3DOF_999 = 16.266
+
+
+@dataclass
+class RotationNees:
+    """Rotation NEES per associated frame, and its summary."""
+
+    mean: float
+    median: float
+    pct_above_999: float          #: % of frames above CHI2_3DOF_999
+    n_frames: int
+    times_s: np.ndarray = field(repr=False)      #: (n,) stamps of the frames
+    nees: np.ndarray = field(repr=False)         #: (n,)
+    err_deg: np.ndarray = field(repr=False)      #: (n,) rotation error angle
+    sigma3_deg: np.ndarray = field(repr=False)   #: (n,) 3 sqrt(largest eigenvalue)
+
+    def to_dict(self) -> dict:
+        return {'rot_nees_mean': self.mean, 'rot_nees_median': self.median,
+                'rot_nees_pct_above_99_9': self.pct_above_999,
+                'rot_nees_frames': self.n_frames}
+
+
+def _associate(a: np.ndarray, b: np.ndarray, max_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i into a, j into b) of the nearest stamps within max_dt."""
+    order = np.argsort(a)
+    pos = np.clip(np.searchsorted(a[order], b), 1, len(a) - 1)
+    left, right = order[pos - 1], order[pos]
+    best = np.where(np.abs(a[left] - b) <= np.abs(a[right] - b), left, right)
+    ok = np.abs(a[best] - b) <= max_dt
+    return best[ok], np.flatnonzero(ok)
+
+
+def rotation_nees(gt_stamps: np.ndarray, gt_T: np.ndarray, est_stamps: np.ndarray,
+                  est_T: np.ndarray, cov_stamps: np.ndarray, cov: np.ndarray,
+                  max_time_diff_s: float = 0.01) -> RotationNees:
+    """Rotation NEES of the estimate (T_world_cam (n,4,4), covariances (m,6,6) with their
+    stamps) against the ground truth. Raises ValueError when nothing associates."""
+    i_cov, j_est = _associate(np.asarray(cov_stamps, float), np.asarray(est_stamps, float),
+                              1e-6)
+    est_s, est_T, cov = est_stamps[j_est], est_T[j_est], cov[i_cov]
+    i_gt, j = _associate(np.asarray(gt_stamps, float), est_s, max_time_diff_s)
+    if len(j) == 0:
+        raise ValueError('no estimated pose with a covariance matches the ground truth')
+    R_gt = gt_T[i_gt, :3, :3]
+    R_est = est_T[j, :3, :3]
+    R_align = R_gt[0] @ R_est[0].T
+    nees, err, sig3 = [], [], []
+    for Rg, Re, C in zip(R_gt, R_est, cov[j]):
+        e = geo.quat_to_rotvec(geo.matrix_to_quat(Rg @ (R_align @ Re).T))
+        S = R_align @ C[3:, 3:] @ R_align.T
+        nees.append(float(e @ np.linalg.solve(S, e)))
+        err.append(np.degrees(np.linalg.norm(e)))
+        sig3.append(3 * np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(S)))))
+    nees = np.array(nees)
+    return RotationNees(float(np.mean(nees)), float(np.median(nees)),
+                        float(100 * np.mean(nees > CHI2_3DOF_999)), len(nees), est_s[j],
+                        nees, np.array(err), np.array(sig3))
+
+
+def plot_rotation_nees(r: RotationNees, out_png: str | Path, title: str = '') -> Path:
+    """Rotation error against 3 sigma over time, and the NEES with its 99.9 % bound."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    t = r.times_s - r.times_s[0]
+    fig, (a, b) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    a.plot(t, r.err_deg, label='rotation error')
+    a.plot(t, r.sigma3_deg, label='3 sigma (largest axis)')
+    a.set_ylabel('deg')
+    a.legend()
+    a.set_title(title or 'rotation error vs published covariance')
+    b.semilogy(t, np.maximum(r.nees, 1e-6), label='rotation NEES')
+    b.axhline(CHI2_3DOF_999, color='r', ls='--', label='chi2(3) 99.9 %')
+    b.axhline(3.0, color='g', ls=':', label='ideal mean 3')
+    b.set_xlabel('time since first pose [s]')
+    b.legend()
+    fig.tight_layout()
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
