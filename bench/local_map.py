@@ -78,12 +78,15 @@ def run_one(bag: Path, overrides: Mapping[str, Any], seed: int) -> dict[str, Any
             'ate_sim3_rmse_m': None if ev is None else float(ev.ate_sim3_rmse),
             'rot_err_mean_deg': None if ev is None else float(ev.rot_err_mean_deg),
             'rot_drift_mean_deg': None if ev is None else float(ev.rot_err_origin_mean_deg),
-            'resets': s.n_resets, 'eval_error': s.eval_error, 'wall_s': s.wall_s}
+            'resets': s.n_resets, 'eval_error': s.eval_error, 'wall_s': s.wall_s,
+            'frames_per_s': s.fps, 'adjustment': dict(s.local_map)}
 
 
 def _stat(runs: Sequence[dict], key: str, how) -> float | None:
-    """``how`` (np.mean / np.max) of ``key`` over the runs that have it, None if none."""
-    vals = [r[key] for r in runs if r[key] is not None]
+    """``how`` (np.mean / np.max) of ``key`` over the runs that have it (a run's own
+    figures, or its adjustment figures), None if none."""
+    vals = [r.get(key, r['adjustment'].get(key)) for r in runs]
+    vals = [v for v in vals if v is not None]
     return float(how(vals)) if vals else None
 
 
@@ -98,6 +101,11 @@ def aggregate(runs: Sequence[dict]) -> dict[str, Any]:
             'first_pose_frame_max': _stat(runs, 'first_pose_frame', np.max),
             'lost_after_first_max': _stat(runs, 'lost_after_first', np.max),
             'resets_max': _stat(runs, 'resets', np.max),
+            'ba_runs_mean': _stat(runs, 'ba_runs', np.mean),
+            'ba_mean_ms': _stat(runs, 'ba_mean_ms', np.mean),
+            'ba_max_ms': _stat(runs, 'ba_max_ms', np.max),
+            'ba_frames_waited_max': _stat(runs, 'ba_frames_waited', np.max),
+            'frames_per_s_mean': _stat(runs, 'frames_per_s', np.mean),
             'no_pose': sum(r['first_pose_frame'] is None for r in runs),
             'no_eval': sum(r['ate_pct_path'] is None for r in runs)}
 
@@ -182,16 +190,27 @@ def report_section(res: dict[str, Any], quick: bool) -> str:
     for name, r in res.items():
         lines += [f'\n### {name} ({r["seeds"]} seeds)\n',
                   '| bag | ATE % mean | ATE % max | ATE % std | drift deg | first pose (max) '
-                  '| lost after it (max) | resets (max) |', '|---|---|---|---|---|---|---|---|']
+                  '| lost after it (max) | resets (max) | frames/s | adjustments per run, '
+                  'mean / max ms, frames waited (max) |',
+                  '|---|---|---|---|---|---|---|---|---|---|']
         for bag, v in r['variants'].items():
             s = v['summary']
             lines.append(f'| {bag} | {_fmt(s["ate_pct_mean"], 3)} | {_fmt(s["ate_pct_max"], 3)} '
                          f'| {_fmt(s["ate_pct_std"], 3)} | {_fmt(s["rot_drift_mean_deg"])} | '
                          f'{_fmt(s["first_pose_frame_max"], 0)} | '
-                         f'{_fmt(s["lost_after_first_max"], 0)} | {_fmt(s["resets_max"], 0)} |')
+                         f'{_fmt(s["lost_after_first_max"], 0)} | {_fmt(s["resets_max"], 0)} | '
+                         f'{_fmt(s["frames_per_s_mean"], 0)} | {_adjustments(s)} |')
         spread = ', '.join(f'{k} {_fmt(v, 3)}' for k, v in r['order_spread_ate_pct'].items())
         lines.append(f'\nOrder spread (ATE % path): {spread}.\n')
     return '\n'.join(lines) + '\n'
+
+
+def _adjustments(s: dict) -> str:
+    """The adjustment cell of the report: '-' when the local map was off."""
+    if s['ba_runs_mean'] is None:
+        return '-'
+    return (f'{s["ba_runs_mean"]:.0f}, {s["ba_mean_ms"]:.0f} / {s["ba_max_ms"]:.0f} ms, '
+            f'{s["ba_frames_waited_max"]:.0f}')
 
 
 def _fmt(v: float | None, p: int = 2) -> str:

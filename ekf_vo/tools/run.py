@@ -110,6 +110,7 @@ class RunSummary:
         stage_ms: mean duration per pipeline stage over the frames that ran it [ms].
         n_resets: tracking resets inside the core (summed over VO instances).
         n_camera_changes: calibration changes that re-created the VO.
+        local_map: the local map's keyframe and adjustment figures ({} when off).
         est_stamps_s: (N,) stamps [s] of the trajectory.
         est_T_world_cam: (N, 4, 4) camera optical frame -> world (VO world frame, VO scale).
         frame_stats: per-frame statistics, in order.
@@ -133,6 +134,7 @@ class RunSummary:
     stage_ms: dict[str, float] = field(default_factory=dict)
     n_resets: int = 0
     n_camera_changes: int = 0
+    local_map: dict = field(default_factory=dict)
     est_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     #: (N, 6, 6) their published covariances (position, world rotation vector)
     est_pose_cov: list = field(default_factory=list, repr=False)
@@ -152,7 +154,7 @@ class RunSummary:
             'pct_tracked': self.pct_tracked, 'wall_s': self.wall_s, 'fps': self.fps,
             'core_fps': self.core_fps, 'stage_ms': dict(self.stage_ms),
             'n_resets': self.n_resets, 'n_camera_changes': self.n_camera_changes,
-            'gt_bootstrap': self.gt_bootstrap,
+            'local_map': dict(self.local_map), 'gt_bootstrap': self.gt_bootstrap,
             'config': dataclasses.asdict(self.config),
             'eval': self.eval.to_dict() if self.eval is not None else None,
             'eval_error': self.eval_error,
@@ -435,6 +437,7 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
     summary.wall_s = time.perf_counter() - t0
     summary.n_resets = stream.n_resets
     summary.n_camera_changes = stream.n_camera_changes
+    summary.local_map = stream.local_map_stats()
     return stream, stamps_s, poses
 
 
