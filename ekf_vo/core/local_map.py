@@ -33,12 +33,14 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class Keyframe:
-    """A frame kept for the adjustment: its pose and every track it observed."""
+    """A frame kept for an adjustment (this local map's, or the multi-view bootstrap's):
+    its pose and the tracks it observed."""
 
     frame_index: int
-    T_world_cam: np.ndarray    #: 4x4, refined by the adjustments
-    ids: np.ndarray            #: (n,) int64 track ids, ascending
+    T_world_cam: np.ndarray | None  #: 4x4, refined by the adjustments (None: not posed yet)
+    ids: np.ndarray            #: (n,) int64 track ids (ascending in the local map)
     px: np.ndarray             #: (n,2) their IDEAL pixels
+    stamp_ns: int = 0
 
 
 @dataclass

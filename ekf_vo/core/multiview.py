@@ -34,6 +34,7 @@ import numpy as np
 from ..config import VoConfig
 from . import geometry as geo
 from .bootstrap import TwoViewBootstrap
+from .local_map import Keyframe
 from .pnp import solve_epnp
 from .triangulation import triangulate_points
 
@@ -163,15 +164,6 @@ def bundle_adjust(T_world_cam: np.ndarray, X_world: np.ndarray, cam_idx: np.ndar
 
 # ---------------------------------------------------------------------- the bootstrap
 @dataclass
-class Keyframe:
-    frame_index: int
-    stamp_ns: int
-    ids: np.ndarray           #: (n,) track ids
-    px: np.ndarray            #: (n,2) ideal pixels
-    T_world_cam: np.ndarray | None
-
-
-@dataclass
 class MultiViewStep:
     """What one frame did to the multi-view bootstrap.
 
@@ -234,7 +226,7 @@ class MultiViewBootstrap:
             if not boot.ok:
                 return MultiViewStep('pending', f'bootstrap refused: {boot.reason}')
             ref.T_world_cam = T_ref
-            kfs.append(Keyframe(frame_index, stamp_ns, ids, px, T_cur))
+            kfs.append(Keyframe(frame_index, T_cur, ids, px, stamp_ns))
             self.points = {int(i): x for i, x in zip(boot.point_ids, X)}
             if len(kfs) >= c.multiview_keyframes:
                 return self._finish()
@@ -267,7 +259,7 @@ class MultiViewBootstrap:
                                  T_world_cam=T_cur, pose_cov=pnp.pose_cov)
         use = ~known                                  # PnP outliers stay out of the BA
         use[np.flatnonzero(known)[pnp.inliers]] = True
-        kfs.append(Keyframe(frame_index, stamp_ns, ids[use], px[use], T_cur))
+        kfs.append(Keyframe(frame_index, T_cur, ids[use], px[use], stamp_ns))
         n_new = self._triangulate_new(kfs[-1])
         if len(kfs) >= c.multiview_keyframes or stale:
             return self._finish()
@@ -280,8 +272,8 @@ class MultiViewBootstrap:
         self.reset()
         if len(ids) < self.cfg.bootstrap_min_inliers:
             return MultiViewStep('pending', f'bootstrap: only {len(ids)} features')
-        self.keyframes.append(Keyframe(frame_index, stamp_ns, ids.copy(), px.copy(),
-                                       known_T))
+        self.keyframes.append(Keyframe(frame_index, known_T, ids.copy(), px.copy(),
+                                       stamp_ns))
         return MultiViewStep('pending', 'bootstrap: new reference frame')
 
     def _triangulate_new(self, kf: Keyframe) -> int:
