@@ -126,5 +126,8 @@ def test_player_paced_by_odometry_never_outruns_a_live_node(tmp_path):
         assert node.stop() == 0, node.output()
     values = {kv.key: kv.value for kv in status[-1].status[0].values}
     assert int(values.get('dropped_behind', 0)) == 0, values
+    # the local map (on by default) reports its keyframes and adjustments on ~/status
+    assert int(values['keyframes']) >= 5 and int(values['ba_runs']) >= 3, values
+    assert float(values['ba_max_ms']) > 0, values
     offline = run_bag(bag, image_topic=IMAGE, info_topic=INFO)
     assert len(odom) >= offline.frames_ok - 3, (len(odom), offline.frames_ok, out)
