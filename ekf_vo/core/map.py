@@ -38,20 +38,19 @@ class LandmarkMap:
         self.cull_after_misses = int(cull_after_misses)
         self.clear()
 
+    #: the per-landmark columns (row = landmark): name -> (shape of one row, dtype).
+    #: _desc: ORB descriptor for finding it again; _noise_dof / _noise_sum: residual
+    #: components seen and their sum of normalised squares (noise_model.py)
+    _COLUMNS = {'_ids': ((), np.int64), '_X': ((3,), np.float64),
+                '_cov': ((3, 3), np.float64), '_desc': ((32,), np.uint8),
+                '_has_desc': ((), bool), '_noise_dof': ((), np.float64),
+                '_noise_sum': ((), np.float64), '_n_obs': ((), np.int32),
+                '_misses': ((), np.int32), '_last_seen': ((), np.int64)}
+
     def clear(self) -> None:
         self._row: dict[int, int] = {}
-        cap = 256
-        self._ids = np.zeros(cap, np.int64)
-        self._X = np.zeros((cap, 3))
-        self._cov = np.zeros((cap, 3, 3))
-        self._desc = np.zeros((cap, 32), np.uint8)     # ORB, for finding it again
-        self._has_desc = np.zeros(cap, bool)
-        # residuals seen (noise_model.py): components and sum of normalised squares
-        self._noise_dof = np.zeros(cap)
-        self._noise_sum = np.zeros(cap)
-        self._n_obs = np.zeros(cap, np.int32)
-        self._misses = np.zeros(cap, np.int32)
-        self._last_seen = np.zeros(cap, np.int64)
+        for name, (shape, dtype) in self._COLUMNS.items():
+            setattr(self, name, np.zeros((256,) + shape, dtype))
         self._size = 0
         self._changed: set[int] = set()
         self._removed: set[int] = set()
@@ -77,13 +76,7 @@ class LandmarkMap:
         if need <= cap:
             return
         new = max(need, 2 * cap)
-        for name in ('_ids', '_n_obs', '_misses', '_last_seen', '_has_desc', '_noise_dof',
-                     '_noise_sum'):
-            arr = getattr(self, name)
-            out = np.zeros(new, arr.dtype)
-            out[:cap] = arr
-            setattr(self, name, out)
-        for name in ('_X', '_cov', '_desc'):
+        for name in self._COLUMNS:
             arr = getattr(self, name)
             out = np.zeros((new,) + arr.shape[1:], arr.dtype)
             out[:cap] = arr
@@ -116,15 +109,22 @@ class LandmarkMap:
             self._removed.discard(lid)
         self._enforce_bound()
 
+    def _rows(self, ids: np.ndarray, missing_ok: bool = False) -> np.ndarray:
+        """Rows (n,) of landmarks `ids`; -1 for absent ones if missing_ok, else all must
+        be in the map (KeyError)."""
+        if missing_ok:
+            return np.array([self._row.get(int(i), -1) for i in ids], dtype=np.int64)
+        return np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+
     def lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For track ids (n,): mask (n,) of those with a landmark, and their X (m,3)."""
-        rows = np.array([self._row.get(int(i), -1) for i in ids], dtype=np.int64)
+        rows = self._rows(ids, missing_ok=True)
         mask = rows >= 0
         return mask, self._X[rows[mask]]
 
     def covariances(self, ids: np.ndarray) -> np.ndarray:
         """Position covariances (n,3,3) of landmarks `ids` (all must be in the map)."""
-        rows = np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+        rows = self._rows(ids)
         return self._cov[rows]
 
     def refine(self, ids: np.ndarray, X_world: np.ndarray, cov: np.ndarray) -> int:
@@ -143,18 +143,18 @@ class LandmarkMap:
     def noise_record(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residual components seen and their sum of normalised squares (n,), (n,) of
         landmarks `ids` (all in the map), for noise_model.noise_scales."""
-        rows = np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+        rows = self._rows(ids)
         return self._noise_dof[rows], self._noise_sum[rows]
 
     def add_residuals(self, ids: np.ndarray, normalised_sq: np.ndarray) -> None:
         """Record one update's normalised squared residuals (2 components each)."""
-        rows = np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+        rows = self._rows(ids)
         self._noise_dof[rows] += 2.0
         self._noise_sum[rows] += normalised_sq
 
     def set_descriptors(self, ids: np.ndarray, desc: np.ndarray) -> None:
         """Binary descriptors (n,32) uint8 of landmarks `ids` (the latest keyframe's)."""
-        rows = np.array([self._row.get(int(i), -1) for i in ids], dtype=np.int64)
+        rows = self._rows(ids, missing_ok=True)
         ok = rows >= 0
         self._desc[rows[ok]] = desc[ok]
         self._has_desc[rows[ok]] = True
@@ -170,7 +170,7 @@ class LandmarkMap:
     def record_observations(self, ids: np.ndarray, inlier: np.ndarray,
                             frame_index: int) -> np.ndarray:
         """Count inlier / outlier verdicts; cull repeated outliers. Returns culled ids."""
-        rows = np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+        rows = self._rows(ids)
         inlier = np.asarray(inlier, bool)
         self._n_obs[rows[inlier]] += 1
         self._misses[rows[inlier]] = 0
@@ -190,9 +190,8 @@ class LandmarkMap:
             last = self._size - 1
             if row != last:
                 moved = int(self._ids[last])
-                for arr in (self._ids, self._X, self._cov, self._desc, self._has_desc,
-                            self._noise_dof, self._noise_sum, self._n_obs, self._misses,
-                            self._last_seen):
+                for name in self._COLUMNS:
+                    arr = getattr(self, name)
                     arr[row] = arr[last]
                 self._row[moved] = row
             self._size -= 1
@@ -210,7 +209,7 @@ class LandmarkMap:
         """Changes since the previous call (for the map_node landmark stream)."""
         changed = np.array(sorted(self._changed), dtype=np.int64)
         mask, X = self.lookup(changed)
-        rows = np.array([self._row[int(i)] for i in changed[mask]], dtype=np.int64)
+        rows = self._rows(changed[mask])
         out = MapChanges(ids=changed[mask], X_world=X,
                          n_obs=self._n_obs[rows] if len(rows) else np.zeros(0, np.int32),
                          removed_ids=np.array(sorted(self._removed), dtype=np.int64))
