@@ -28,6 +28,7 @@ from ekf_vo.core.pipeline import VisualOdometry
 from ekf_vo.tools.evaluate import evaluate
 from ekf_vo.tools.run import parse_overrides
 from ekf_vo.tools.synth import SynthConfig, render_sequence
+from ekf_vo.tools.synth_points import pose_error
 from .common import write_json
 
 TRAJECTORIES = ('walk', 'orbit')
@@ -39,10 +40,8 @@ def frame_nees(T_gt_est: np.ndarray, T_gt: np.ndarray, T_est: np.ndarray,
     sR, t = T_gt_est[:3, :3], T_gt_est[:3, 3]
     s = np.cbrt(np.linalg.det(sR))
     R = sR / s
-    p_gt_in_est = R.T @ (T_gt[:3, 3] - t) / s
-    R_gt_in_est = R.T @ T_gt[:3, :3]
-    e = np.concatenate((p_gt_in_est - T_est[:3, 3],
-                        geo.quat_to_rotvec(geo.matrix_to_quat(R_gt_in_est @ T_est[:3, :3].T))))
+    T_gt_in_est = geo.make_T(R.T @ T_gt[:3, :3], R.T @ (T_gt[:3, 3] - t) / s)
+    e = pose_error(T_est, T_gt_in_est)
     return float(e @ np.linalg.solve(cov, e))
 
 

@@ -30,6 +30,7 @@ from ekf_vo.core import geometry as geo
 from ekf_vo.core.ekf import CameraEKF
 from ekf_vo.core.noise_model import (NoiseSettings, explained_px2, noise_scales,
                                      normalised_squares)
+from ekf_vo.tools.synth_points import pose_error
 from .common import shared_data, write_json
 
 METHODS = ('EKFPnP', 'EPnP_GN', 'EPnP', 'MLPnP', 'CEPPnP', 'OPnP', 'RPnP', 'ASPnP')
@@ -68,10 +69,7 @@ def load(folder: Path) -> dict:
 def _pose_nees(ekf: CameraEKF, R_cw_gt: np.ndarray, t_cw_gt: np.ndarray) -> float:
     """6-dof NEES of the filter's pose against the truth, in the published covariance's
     convention (position, world rotation vector; docs/method.md §10.1)."""
-    T_gt = geo.invert_T(geo.make_T(R_cw_gt, t_cw_gt))
-    T = ekf.T_world_cam
-    e = np.concatenate((T_gt[:3, 3] - T[:3, 3], geo.quat_to_rotvec(
-        geo.matrix_to_quat(T_gt[:3, :3] @ T[:3, :3].T))))
+    e = pose_error(ekf.T_world_cam, geo.invert_T(geo.make_T(R_cw_gt, t_cw_gt)))
     return float(e @ np.linalg.solve(ekf.pose_covariance(), e))
 
 

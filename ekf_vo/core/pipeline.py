@@ -166,7 +166,6 @@ class VisualOdometry:
                 (stamp_ns - self._last_stamp_ns) * 1e-9 > self.cfg.max_dt_s:
             self.reset(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s')
         self.frame_index += 1
-        self._gray = gray       # the frame being processed (keyframe descriptors)
         if self.state == TrackingState.TRACKING:
             result = self._track(gray, stamp_ns)
         elif self.multiview is not None:
@@ -230,18 +229,19 @@ class VisualOdometry:
             res.message = f'bootstrap refused: {boot.reason}'
             return res
 
-        self._start_tracking(res, tracks, px, boot.point_ids, X_world, T_world_ref,
+        self._start_tracking(res, gray, tracks, px, boot.point_ids, X_world, T_world_ref,
                              T_world_cur, (stamp_ns - ref.stamp_ns) * 1e-9,
                              [(ref.frame_index, ref.ids, ref.px_ideal, T_world_ref)])
         res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
                        f'{boot.median_parallax_deg:.1f} deg')
         return res
 
-    def _start_tracking(self, res: FrameResult, tracks: Tracks, px: np.ndarray,
-                        point_ids: np.ndarray, X_world: np.ndarray, T_world_prev: np.ndarray,
-                        T_world_cur: np.ndarray, dt: float, sources: list) -> None:
-        """Start tracking (docs/method.md §3.6): the map, the pose of the current
-        (last bootstrap) frame, velocities from the difference of the last two bootstrap
+    def _start_tracking(self, res: FrameResult, gray: np.ndarray, tracks: Tracks,
+                        px: np.ndarray, point_ids: np.ndarray, X_world: np.ndarray,
+                        T_world_prev: np.ndarray, T_world_cur: np.ndarray, dt: float,
+                        sources: list) -> None:
+        """Start tracking (docs/method.md §3.6) on the image `gray`: the map, the pose of
+        the current (last bootstrap) frame, velocities from the difference of the last two bootstrap
         poses `dt` seconds apart. `sources`: earlier bootstrap frames (frame index, ids,
         ideal px, T_world_cam), oldest first, from which tracks without a point become
         triangulation candidates (wider baseline than from now)."""
@@ -273,7 +273,7 @@ class VisualOdometry:
                 self.local_map.add_keyframe(f, T, ids, src_px)
             self.local_map.add_keyframe(self.frame_index, T_world_cur, tracks.ids, px)
         if self.finder is not None:
-            self.finder.describe(self._gray, tracks, self.map)
+            self.finder.describe(gray, tracks, self.map)
         res.bootstrapped = True
         self._fill_output(res, tracks, has_point, has_point)
 
@@ -305,7 +305,7 @@ class VisualOdometry:
                                         [c.init_angular_velocity_sigma ** 2] * 3)
             return res
         kfs = step.keyframes
-        self._start_tracking(res, tracks, px, step.point_ids, step.X_world,
+        self._start_tracking(res, gray, tracks, px, step.point_ids, step.X_world,
                              kfs[-2].T_world_cam, kfs[-1].T_world_cam,
                              (kfs[-1].stamp_ns - kfs[-2].stamp_ns) * 1e-9,
                              [(kf.frame_index, kf.ids, kf.px, kf.T_world_cam)
