@@ -247,6 +247,14 @@ class VoConfig(_Params):
         'per-point independent noise ignores the error the points share (bench.local_map).',
         group='local_map')
 
+    # ---- the map's error in the published covariance (ekf_vo/core/map_uncertainty.py) ----
+    map_in_covariance: bool = param(
+        True, 'Add the map\'s own error to the published pose covariance: each point\'s '
+        'triangulation noise and the common error points inherit from the poses they were '
+        'made from (docs/method.md §14). Off: the covariance is relative to the map only '
+        '(honest for the papers\' exact-map experiments, far too small on real data).',
+        group='consistency')
+
     # ---- measurement noise (ekf_vo/core/noise_model.py) ----
     measurement_noise: str = param(
         'fixed', 'fixed: every map point has pixel_sigma_px; adaptive: each landmark\'s '

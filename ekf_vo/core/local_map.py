@@ -41,6 +41,9 @@ class Keyframe:
     ids: np.ndarray            #: (n,) int64 track ids (ascending in the local map)
     px: np.ndarray             #: (n,2) their IDEAL pixels
     stamp_ns: int = 0
+    #: world covariance (6x6) and centre of the pose when it became a keyframe: the
+    #: anchor of the points an adjustment expresses relative to it (map_uncertainty.py)
+    anchor: tuple | None = None
 
 
 @dataclass
@@ -102,24 +105,26 @@ class LocalMapper:
 
     # ------------------------------------------------------------------ keyframes
     def consider(self, frame_index: int, T_world_cam: np.ndarray, ids: np.ndarray,
-                 px_ideal: np.ndarray, has_point: np.ndarray, landmarks: LandmarkMap
-                 ) -> bool:
+                 px_ideal: np.ndarray, has_point: np.ndarray, landmarks: LandmarkMap,
+                 anchor: tuple | None = None) -> bool:
         """Make this frame a keyframe if the rules say so, and start an adjustment.
-        ids/px_ideal: every track of the frame; has_point: those with a map point."""
+        ids/px_ideal: every track of the frame; has_point: those with a map point;
+        anchor: the pose's world (covariance, centre)."""
         if not self._is_keyframe(T_world_cam, ids[has_point], landmarks):
             return False
-        self.add_keyframe(frame_index, T_world_cam, ids, px_ideal)
+        self.add_keyframe(frame_index, T_world_cam, ids, px_ideal, anchor)
         if self._pending is None and len(self.keyframes) >= 2:
             self._launch(frame_index, landmarks)
         return True
 
     def add_keyframe(self, frame_index: int, T_world_cam: np.ndarray, ids: np.ndarray,
-                     px_ideal: np.ndarray) -> None:
+                     px_ideal: np.ndarray, anchor: tuple | None = None) -> None:
         """Append a keyframe (the bootstrap's frames enter this way, without the rules)."""
         order = np.argsort(ids, kind='stable')
         self.keyframes.append(Keyframe(frame_index, np.array(T_world_cam, float),
                                        np.asarray(ids, np.int64)[order],
-                                       np.asarray(px_ideal, float)[order]))
+                                       np.asarray(px_ideal, float)[order],
+                                       anchor=anchor))
         self.stats.n_keyframes += 1
         # keep what the next windows can use (older keyframes are never adjusted again)
         del self.keyframes[:-self.cfg.ba_window_keyframes]
@@ -233,7 +238,11 @@ class LocalMapper:
         bad = ~(sol.point_median_err_px <= c.ba_outlier_px)
         culled = pend.point_ids[bad]
         landmarks.remove(culled)
-        landmarks.refine(pend.point_ids[~bad], sol.X_world[~bad], sol.X_cov[~bad])
+        # the refined points are now relative to the window's fixed keyframes: they take
+        # the newest fixed one's anchor (docs/method.md §14)
+        gauge = pend.keyframes[max(0, min(c.ba_fixed_keyframes, len(pend.keyframes)) - 1)]
+        landmarks.refine(pend.point_ids[~bad], sol.X_world[~bad], sol.X_cov[~bad],
+                         gauge.anchor)
         s = self.stats
         s.n_runs += 1
         s.last_ms = sol.elapsed_ms

@@ -40,9 +40,12 @@ class LandmarkMap:
 
     #: the per-landmark columns (row = landmark): name -> (shape of one row, dtype).
     #: _desc: ORB descriptor for finding it again; _noise_dof / _noise_sum: residual
-    #: components seen and their sum of normalised squares (noise_model.py)
+    #: components seen and their sum of normalised squares (noise_model.py); _anchor_cov /
+    #: _anchor_c: world covariance and centre of the pose the landmark was made from
+    #: (map_uncertainty.py)
     _COLUMNS = {'_ids': ((), np.int64), '_X': ((3,), np.float64),
-                '_cov': ((3, 3), np.float64), '_desc': ((32,), np.uint8),
+                '_cov': ((3, 3), np.float64), '_anchor_cov': ((6, 6), np.float64),
+                '_anchor_c': ((3,), np.float64), '_desc': ((32,), np.uint8),
                 '_has_desc': ((), bool), '_noise_dof': ((), np.float64),
                 '_noise_sum': ((), np.float64), '_n_obs': ((), np.int32),
                 '_misses': ((), np.int32), '_last_seen': ((), np.int64)}
@@ -83,10 +86,13 @@ class LandmarkMap:
             setattr(self, name, out)
 
     def add(self, ids: np.ndarray, X_world: np.ndarray, frame_index: int,
-            n_obs: int = 2, cov: np.ndarray | None = None) -> None:
+            n_obs: int = 2, cov: np.ndarray | None = None,
+            anchor: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Insert new landmarks (ids already present are overwritten); `cov` (n,3,3)
-        their position covariances (None: zero)."""
+        their position covariances (None: zero); `anchor` (6x6 world covariance, centre)
+        of the pose they were made from (None: exact)."""
         ids = np.asarray(ids, np.int64)
+        anchor_cov, anchor_c = (np.zeros((6, 6)), np.zeros(3)) if anchor is None else anchor
         covs = np.zeros((len(ids), 3, 3)) if cov is None else np.asarray(cov, float)
         for lid, X, C in zip(ids, np.asarray(X_world, float), covs):
             lid = int(lid)
@@ -99,6 +105,7 @@ class LandmarkMap:
                 self._ids[row] = lid
             self._X[row] = X
             self._cov[row] = C
+            self._anchor_cov[row], self._anchor_c[row] = anchor_cov, anchor_c
             self._has_desc[row] = False
             self._noise_dof[row] = 0.0
             self._noise_sum[row] = 0.0
@@ -127,15 +134,24 @@ class LandmarkMap:
         rows = self._rows(ids)
         return self._cov[rows]
 
-    def refine(self, ids: np.ndarray, X_world: np.ndarray, cov: np.ndarray) -> int:
+    def anchors(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Anchor covariances (n,6,6) and centres (n,3) of landmarks `ids` (all in the map)."""
+        rows = self._rows(ids)
+        return self._anchor_cov[rows], self._anchor_c[rows]
+
+    def refine(self, ids: np.ndarray, X_world: np.ndarray, cov: np.ndarray,
+               anchor: tuple[np.ndarray, np.ndarray] | None = None) -> int:
         """Move landmarks to refined positions with new covariances (the local map's
-        adjustment); ids no longer in the map are skipped. Returns how many moved."""
+        adjustment), and re-anchor them (None: keep their anchors); ids no longer in the
+        map are skipped. Returns how many moved."""
         n = 0
         for lid, X, C in zip(np.asarray(ids, np.int64), X_world, cov):
             row = self._row.get(int(lid))
             if row is None:
                 continue
             self._X[row], self._cov[row] = X, C
+            if anchor is not None:
+                self._anchor_cov[row], self._anchor_c[row] = anchor
             self._changed.add(int(lid))
             n += 1
         return n

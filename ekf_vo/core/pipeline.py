@@ -33,6 +33,7 @@ from .features import FeatureTracker, Tracks
 from .local_ba import point_covariances
 from .local_map import LocalMapper
 from .map import LandmarkMap
+from .map_uncertainty import WorldCovariance
 from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
 from .refind import MapPointFinder
@@ -105,6 +106,8 @@ class VisualOdometry:
         # keyframes + windowed adjustment (docs/method.md §12); None = points never refined
         self.local_map = LocalMapper(cfg, camera.K) if cfg.local_map else None
         self._noise = NoiseSettings.from_config(cfg)
+        # the map's error in the published covariance (docs/method.md §14)
+        self.world_cov = WorldCovariance(cfg.map_in_covariance, camera.K, cfg.pixel_sigma_px)
         # map points found again by descriptor (docs/method.md §12.5); None = off
         self.finder = MapPointFinder(cfg) if cfg.local_map and cfg.refind_map_points \
             else None
@@ -147,6 +150,7 @@ class VisualOdometry:
         if self.state == TrackingState.TRACKING:
             self._anchor_T_world_cam = self.ekf.T_world_cam
             self._anchor_speed = float(np.linalg.norm(self.ekf.x[VEL]))
+            self.world_cov.carry()
         logger.info('VO reset: %s', reason)
         self.n_resets += 1
         self._reset_state()
@@ -245,8 +249,10 @@ class VisualOdometry:
         poses `dt` seconds apart. `sources`: earlier bootstrap frames (frame index, ids,
         ideal px, T_world_cam), oldest first, from which tracks without a point become
         triangulation candidates (wider baseline than from now)."""
+        anchor = self.world_cov.bootstrap_anchor(sources[0][3], T_world_cur, X_world)
         self.map.add(point_ids, X_world, self.frame_index,
-                     cov=self._two_view_covariances(X_world, sources[0][3], T_world_cur))
+                     cov=self._two_view_covariances(X_world, sources[0][3], T_world_cur),
+                     anchor=anchor)
         dt = max(dt, 1e-6)
         v_world = (T_world_cur[:3, 3] - T_world_prev[:3, 3]) / dt
         R_rel = T_world_prev[:3, :3].T @ T_world_cur[:3, :3]
@@ -254,6 +260,8 @@ class VisualOdometry:
         c = self.cfg
         self.ekf.initialise(T_world_cur, v_world, w_cam, c.init_pose_sigma,
                             c.init_velocity_sigma, c.init_angular_velocity_sigma)
+        self._published_cov = self.ekf.pose_covariance() + anchor[0]
+        self.world_cov.last = (self._published_cov, T_world_cur[:3, 3].copy())
         self.state = TrackingState.TRACKING
         self._failed_frames = 0
         self._T_world_cam_at = {f: T for f, _, _, T in sources}
@@ -269,9 +277,11 @@ class VisualOdometry:
             else:
                 self._add_candidate(tid, self.frame_index, px[k], T_world_cur)
         if self.local_map is not None:
-            for f, ids, src_px, T in sources:
-                self.local_map.add_keyframe(f, T, ids, src_px)
-            self.local_map.add_keyframe(self.frame_index, T_world_cur, tracks.ids, px)
+            for k, (f, ids, src_px, T) in enumerate(sources):
+                self.local_map.add_keyframe(f, T, ids, src_px, anchor if k else
+                                            self.world_cov.origin_anchor(T))
+            self.local_map.add_keyframe(self.frame_index, T_world_cur, tracks.ids, px,
+                                        anchor)
         if self.finder is not None:
             self.finder.describe(gray, tracks, self.map)
         res.bootstrapped = True
@@ -355,6 +365,10 @@ class VisualOdometry:
             return res
         timings['update'] = (time.perf_counter() - t) * 1e3
         res.n_inliers = len(inlier_rows)
+        mi = self._map_inliers
+        self._published_cov = self.world_cov.compose(
+            self.ekf.pose_covariance(), self.ekf.T_world_cam, self.map, tracks.ids[rows][mi],
+            X[mi], None if sigma is None else sigma[mi])
 
         # ---- tracking quality
         pos_sigma = float(np.sqrt(np.max(np.diag(self.ekf.P)[POS])))
@@ -425,7 +439,8 @@ class VisualOdometry:
             keep = inlier_mask | ~has_point
             if self.local_map.consider(self.frame_index, T_world_cam, tracks.ids[keep],
                                        px[keep], self.map.contains(tracks.ids[keep]),
-                                       self.map) and self.finder is not None:
+                                       self.map, self.world_cov.last) and \
+                    self.finder is not None:
                 self.finder.describe(gray, tracks, self.map)
         return n_new
 
@@ -464,6 +479,7 @@ class VisualOdometry:
             f_tracks = np.flatnonzero(pt_rows >= 0)
             matches.z_points, matches.point_rows = px[f_tracks], pt_rows[f_tracks]
         out = self.estimator.update(matches, self.rng)
+        self._map_inliers = out.map_inliers
         if self.cfg.measurement_noise == 'adaptive':
             inl = out.map_inliers
             learn_from_update(self.map, self.ekf, tracks.ids[rows][inl], px[rows][inl],
@@ -483,7 +499,7 @@ class VisualOdometry:
         out = pts.retire(tracks.ids, T_world_cam[:3, 3])
         if len(out.frozen_ids):
             self.map.add(out.frozen_ids, out.frozen_X, self.frame_index,
-                         n_obs=int(np.min(out.frozen_n_obs)))
+                         n_obs=int(np.min(out.frozen_n_obs)), anchor=self.world_cov.last)
         self._filter_rejected.update(int(i) for i in out.dropped_ids)
         in_map = self.map.contains(tracks.ids)
         in_filter = pts.rows_of(tracks.ids) >= 0
@@ -551,7 +567,7 @@ class VisualOdometry:
                 self.map.add(sel_ids[good], tri.X_world[good], self.frame_index,
                              cov=self._two_view_covariances(
                                  tri.X_world[good], self._T_world_cam_at[int(f)],
-                                 T_world_cam))
+                                 T_world_cam), anchor=self.world_cov.last)
                 n_added += int(np.count_nonzero(good))
                 for tid in sel_ids[good]:
                     self._drop_candidate(int(tid))
@@ -578,7 +594,7 @@ class VisualOdometry:
         res.track_ids, res.track_px = tracks.ids, tracks.px
         res.track_has_point, res.track_inlier = has_point, inlier_mask
         res.T_world_cam = self.ekf.T_world_cam
-        cov = self.ekf.pose_covariance()
+        cov = self._published_cov
         twist, twist_cov = self.ekf.twist_cam()
         # floor the variances: never publish a zero (infinitely confident) covariance
         res.pose_cov = cov + np.eye(6) * MIN_VARIANCE
@@ -590,3 +606,4 @@ class VisualOdometry:
             res.message = 'non-finite estimate suppressed'
 
     _prev_ids = np.zeros(0, np.int64)
+    _published_cov = np.zeros((6, 6))
