@@ -310,6 +310,26 @@ class VoConfig(_Params):
         100.0, 'A frame fails when the update NIS per degree of freedom exceeds this '
         '(innovations inconsistent with the covariance; 1 is expected).', '', 1.0, 1e6,
         group='quality')
+    health_window_frames: int = param(
+        10, 'Updates whose NIS is summed for the consistency check (docs/method.md §15).',
+        'frames', 1, 1000, group='quality')
+    health_max_variance_factor: float = param(
+        4.0, 'DEGRADED when the windowed NIS per dof exceeds this (and its chi-square '
+        'bound); the published covariance is inflated by that factor whenever it exceeds '
+        'the bound.', '', 1.0, 1e6, group='quality')
+    health_min_found_share: float = param(
+        0.2, 'DEGRADED when fewer of the map points the prior puts in the image are '
+        'found (used as inliers).', '', 0.0, 1.0, group='quality')
+    rotation_check: bool = param(
+        True, 'At each keyframe, compare the filter\'s rotation since the last one with the '
+        'essential matrix of their shared tracks (docs/method.md §15.2).', group='quality')
+    rotation_check_max_nees: float = param(
+        16.27, 'A keyframe pair whose rotation NEES against the two-view covariance exceeds '
+        'this (chi-square 3 dof, 99.9 %) adds its discrepancy to the published covariance '
+        'and is DEGRADED.', '', 1.0, 1e6, group='quality')
+    rotation_check_min_parallax_deg: float = param(
+        1.0, 'Keyframe pairs with less median parallax are not judged (the essential '
+        'matrix needs a baseline).', 'deg', 0.0, 90.0, group='quality')
     max_position_sigma_m: float = param(
         10.0, 'Declare tracking lost when the position std exceeds this.', 'm', 1e-3, 1e6,
         group='quality')

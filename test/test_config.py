@@ -58,7 +58,8 @@ def test_core_imports_numpy_and_opencv_only():
     allowed = {'numpy', 'cv2', 'ekf_vo', '__future__', 'logging', 'dataclasses', 'enum',
                'time', 'math', 'typing', 'collections', 'functools', 'itertools',
                'threading',   # stdlib only: the stream guards its inputs with a lock
-               'concurrent'}  # the local map's adjustment worker (core/local_map.py)
+               'concurrent',  # the local map's adjustment worker (core/local_map.py)
+               'bisect'}      # CameraInfo by stamp (core/pairing.py)
     lazy_ok = {('multiview.py', 'scipy')}   # bundle adjustment, imported in the function
     for path in core.glob('*.py'):
         tree = ast.parse(path.read_text())

@@ -46,7 +46,7 @@ _RANSAC_PROB = 0.999
 #: Homography/essential inlier ratio above which H "explains the motion as well as E".
 #: Measured on synthetic 1 px noise scenes: pure rotation gives 0.8-1.0 (E over-fits the
 #: noise there), general motion with depth variation 0.2-0.3.
-_H_OVER_E_RATIO = 0.7
+H_OVER_E_RATIO = 0.7
 #: Homography RANSAC threshold in multiples of the essential one, chosen so that both
 #: models keep the same fraction of true inliers: the E error (point to epipolar line,
 #: Sampson) is 1-D with std sigma, the H forward transfer error is 2-D and carries the
@@ -304,7 +304,7 @@ class TwoViewBootstrap:
         common = dict(n_common=n_common, median_flow_px=flow, h_over_e=h_over_e,
                       median_parallax_deg=med_par, n_inliers=n_valid, triangulation=tri)
         min_par = float(cfg.bootstrap_min_parallax_deg)
-        if h_over_e >= _H_OVER_E_RATIO and med_par < min_par:
+        if h_over_e >= H_OVER_E_RATIO and med_par < min_par:
             return self._refuse(
                 f'pure rotation / insufficient parallax: the homography explains '
                 f'{100 * h_over_e:.0f}% of the essential inliers and the median parallax '

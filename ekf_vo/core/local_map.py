@@ -44,6 +44,9 @@ class Keyframe:
     #: world covariance (6x6) and centre of the pose when it became a keyframe: the
     #: anchor of the points an adjustment expresses relative to it (map_uncertainty.py)
     anchor: tuple | None = None
+    #: the filter's pose when it became a keyframe (never refined: the rotation check
+    #: judges the filter, rotation_check.py)
+    T_world_cam_filter: np.ndarray | None = None
 
 
 @dataclass
@@ -124,7 +127,8 @@ class LocalMapper:
         self.keyframes.append(Keyframe(frame_index, np.array(T_world_cam, float),
                                        np.asarray(ids, np.int64)[order],
                                        np.asarray(px_ideal, float)[order],
-                                       anchor=anchor))
+                                       anchor=anchor,
+                                       T_world_cam_filter=np.array(T_world_cam, float)))
         self.stats.n_keyframes += 1
         # keep what the next windows can use (older keyframes are never adjusted again)
         del self.keyframes[:-self.cfg.ba_window_keyframes]

@@ -135,10 +135,23 @@ class WorldCovariance:
         self.last = (np.zeros((6, 6)), np.zeros(3))   #: last published (cov, centre)
         self.points_part = np.zeros((6, 6))          #: last frame's terms (diagnostics)
         self.anchor_part = np.zeros((6, 6))
+        #: error the online checks found beyond the covariance (rotation_check.py): added
+        #: to every later published covariance of this map, not to the anchors
+        self.evidence = np.zeros((6, 6))
 
-    def carry(self) -> None:
-        """A re-bootstrap: the next map is anchored at the last published pose."""
-        self._carried = self.last
+    def add_rotation_evidence(self, d_world: np.ndarray) -> None:
+        """A rotation error d (world rotation vector) the covariance did not allow for:
+        from now on the published covariance holds d d^T more."""
+        self.evidence[3:, 3:] += np.outer(d_world, d_world)
+
+    def carry(self, filter_cov: np.ndarray, r_now: np.ndarray) -> None:
+        """A re-bootstrap at the filter's current pose (centre r_now, covariance
+        filter_cov): the next map is anchored at the last published covariance carried
+        there, plus what the filter's own covariance has grown to since."""
+        carried = carry_pose_covariance(self.last[0][None] + self.evidence, self.last[1],
+                                        r_now)[0]
+        self._carried = (carried + filter_cov, np.asarray(r_now, float).copy())
+        self.evidence = np.zeros((6, 6))
 
     def bootstrap_anchor(self, T_world_a: np.ndarray, T_world_b: np.ndarray,
                          X_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -157,12 +170,16 @@ class WorldCovariance:
         return carry_pose_covariance(self._carried[0][None], self._carried[1], c_a)[0], c_a
 
     def compose(self, filter_cov: np.ndarray, T_world_cam: np.ndarray, landmarks,
-                ids: np.ndarray, X_world: np.ndarray, sigma_px: np.ndarray | None
-                ) -> np.ndarray:
+                ids: np.ndarray, X_world: np.ndarray, sigma_px: np.ndarray | None,
+                inflation: float = 1.0, remember: bool = True) -> np.ndarray:
         """Published 6x6 covariance of a tracked frame: the filter's `filter_cov` plus
         the map's, from the update's inlier landmarks `ids` at X_world (n,3) measured
-        with pixel noise sigma_px (n,) (None: the nominal)."""
-        cov = filter_cov
+        with pixel noise sigma_px (n,) (None: the nominal). `inflation` (health.py)
+        scales what this frame measured (the filter's and the points' terms), not the
+        anchors: those were inflated when the poses they come from were published.
+        `remember`: False for a frame that is not published (a failed frame): new points
+        and a re-bootstrap then take the last published covariance."""
+        cov = filter_cov * inflation
         if self.enabled and len(ids):
             sigma = np.full(len(ids), self.sigma_px) if sigma_px is None else sigma_px
             J_pose, J_X, front = pose_point_jacobians(self.K, T_world_cam, X_world)
@@ -170,6 +187,7 @@ class WorldCovariance:
                 J_pose[front], J_X[front], sigma[front], landmarks.covariances(ids[front]))
             a_cov, a_c = landmarks.anchors(ids)
             self.anchor_part = anchor_covariance(a_cov, a_c, T_world_cam[:3, 3])
-            cov = filter_cov + self.points_part + self.anchor_part
-        self.last = (cov, T_world_cam[:3, 3].copy())
-        return cov
+            cov = inflation * (filter_cov + self.points_part) + self.anchor_part
+        if remember:
+            self.last = (cov, T_world_cam[:3, 3].copy())
+        return cov + self.evidence

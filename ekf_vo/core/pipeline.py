@@ -25,20 +25,21 @@ import numpy as np
 
 from ..config import VoConfig
 from . import geometry as geo
-from .bootstrap import TwoViewBootstrap
+from .bootstrap import H_OVER_E_RATIO, TwoViewBootstrap
 from .camera import PinholeCamera
 from .ekf import POS, VEL, CameraEKF, FilterError
 from .estimators import FrameMatches, make_estimator
 from .features import FeatureTracker, Tracks
-from .local_ba import point_covariances
+from .health import Health, HealthMonitor
 from .local_map import LocalMapper
 from .map import LandmarkMap
+from .map_growth import MapGrowth
 from .map_uncertainty import WorldCovariance
 from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
 from .refind import MapPointFinder
+from .rotation_check import check_rotation
 from .point_filter import PointFilter
-from .triangulation import triangulate_points
 
 logger = logging.getLogger(__name__)
 
@@ -72,6 +73,11 @@ class FrameResult:
     nis_per_dof: float = 0.0               #: normalised innovation squared / (2 n)
     map_size: int = 0
     bootstrapped: bool = False              #: this frame completed a (re-)bootstrap
+    #: online checks of a tracked frame (health.py): 'ok', 'degraded' or 'lost', and why
+    health: str = ''
+    health_reason: str = ''
+    variance_factor: float = 1.0            #: windowed NIS / dof
+    found_share: float = 1.0                #: inliers / map points the prior put in view
     message: str = ''                       #: why not ok / what happened
     timings_ms: dict = field(default_factory=dict)
     track_ids: np.ndarray | None = None     #: (n,) for debug drawing
@@ -112,6 +118,8 @@ class VisualOdometry:
         self.finder = MapPointFinder(cfg) if cfg.local_map and cfg.refind_map_points \
             else None
         self.rng = np.random.default_rng(seed)
+        self.growth = MapGrowth(cfg, camera)        # triangulation candidates (§7.3)
+        self.health = HealthMonitor(cfg)            # online consistency checks (§15)
         # in-filter map refinement (docs/method.md §8); None = the hybrid default
         self.points: PointFilter | None = None
         if cfg.map_refinement == 'filter' and cfg.estimator != 'epnp':
@@ -133,12 +141,8 @@ class VisualOdometry:
         self._ref: _Reference | None = None
         self._last_stamp_ns: int | None = None
         self._failed_frames = 0
-        # candidate tracks for triangulation: id -> (frame index, ideal px, world bearing)
-        self._cand_frame: dict[int, int] = {}
-        self._cand_px: dict[int, np.ndarray] = {}
-        self._cand_bearing: dict[int, np.ndarray] = {}
-        self._banned: set[int] = set()
-        self._T_world_cam_at: dict[int, np.ndarray] = {}
+        self.growth.reset()
+        self.health.reset()
         self._filter_rejected: set[int] = set()   # left the point filter unconverged
         if self.points is not None:
             self.points.clear()
@@ -150,7 +154,7 @@ class VisualOdometry:
         if self.state == TrackingState.TRACKING:
             self._anchor_T_world_cam = self.ekf.T_world_cam
             self._anchor_speed = float(np.linalg.norm(self.ekf.x[VEL]))
-            self.world_cov.carry()
+            self.world_cov.carry(self.ekf.pose_covariance(), self.ekf.x[POS])
         logger.info('VO reset: %s', reason)
         self.n_resets += 1
         self._reset_state()
@@ -251,7 +255,7 @@ class VisualOdometry:
         triangulation candidates (wider baseline than from now)."""
         anchor = self.world_cov.bootstrap_anchor(sources[0][3], T_world_cur, X_world)
         self.map.add(point_ids, X_world, self.frame_index,
-                     cov=self._two_view_covariances(X_world, sources[0][3], T_world_cur),
+                     cov=self.growth.two_view_covariances(X_world, sources[0][3], T_world_cur),
                      anchor=anchor)
         dt = max(dt, 1e-6)
         v_world = (T_world_cur[:3, 3] - T_world_prev[:3, 3]) / dt
@@ -261,21 +265,23 @@ class VisualOdometry:
         self.ekf.initialise(T_world_cur, v_world, w_cam, c.init_pose_sigma,
                             c.init_velocity_sigma, c.init_angular_velocity_sigma)
         self._published_cov = self.ekf.pose_covariance() + anchor[0]
+        self._inflation = 1.0
         self.world_cov.last = (self._published_cov, T_world_cur[:3, 3].copy())
         self.state = TrackingState.TRACKING
         self._failed_frames = 0
-        self._T_world_cam_at = {f: T for f, _, _, T in sources}
-        self._T_world_cam_at[self.frame_index] = T_world_cur
+        for f, _, _, T in sources:
+            self.growth.remember_pose(f, T)
+        self.growth.remember_pose(self.frame_index, T_world_cur)
         rows = [{int(i): k for k, i in enumerate(ids)} for _, ids, _, _ in sources]
         has_point = self.map.contains(tracks.ids)
         for k in np.flatnonzero(~has_point):
             tid = int(tracks.ids[k])
             for (f, _, src_px, T), row in zip(sources, rows):
                 if tid in row:
-                    self._add_candidate(tid, f, src_px[row[tid]], T)
+                    self.growth.add(tid, f, src_px[row[tid]], T)
                     break
             else:
-                self._add_candidate(tid, self.frame_index, px[k], T_world_cur)
+                self.growth.add(tid, self.frame_index, px[k], T_world_cur)
         if self.local_map is not None:
             for k, (f, ids, src_px, T) in enumerate(sources):
                 self.local_map.add_keyframe(f, T, ids, src_px, anchor if k else
@@ -285,6 +291,7 @@ class VisualOdometry:
         if self.finder is not None:
             self.finder.describe(gray, tracks, self.map)
         res.bootstrapped = True
+        res.health = 'ok'
         self._fill_output(res, tracks, has_point, has_point)
 
     def _initialise_multi_view(self, gray: np.ndarray, stamp_ns: int,
@@ -334,12 +341,13 @@ class VisualOdometry:
         t = time.perf_counter()
         if self.local_map is not None:
             culled = self.local_map.harvest(self.frame_index, self.map)
-            self._banned.update(int(i) for i in culled)
+            self.growth.banned.update(int(i) for i in culled)
         timings['local_map'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
         self.estimator.predict(dt)
         predicted = self._predicted_pixels()
+        n_in_view = self._map_points_in_view()
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -365,30 +373,16 @@ class VisualOdometry:
             return res
         timings['update'] = (time.perf_counter() - t) * 1e3
         res.n_inliers = len(inlier_rows)
+
+        # ---- tracking quality, and the published covariance (docs/method.md §14-15)
+        n_found = res.n_inliers / max(len(rows), 1) * np.count_nonzero(has_point)
+        if self._judge(res, n_found, n_in_view):
+            return res
         mi = self._map_inliers
         self._published_cov = self.world_cov.compose(
             self.ekf.pose_covariance(), self.ekf.T_world_cam, self.map, tracks.ids[rows][mi],
-            X[mi], None if sigma is None else sigma[mi])
-
-        # ---- tracking quality
-        pos_sigma = float(np.sqrt(np.max(np.diag(self.ekf.P)[POS])))
-        upd = self.ekf.last_update
-        nis_per_dof = upd.nis / (2 * upd.n_used) if upd.n_used else 0.0
-        res.nis_per_dof = nis_per_dof
-        if res.n_inliers < c.min_tracking_inliers:
-            self._failed_frames += 1
-            res.message = f'only {res.n_inliers} inliers'
-        elif nis_per_dof > c.max_nis_per_dof:
-            # the innovations disagree with the filter's own covariance: inconsistent
-            self._failed_frames += 1
-            res.message = f'innovation out of bounds (NIS per dof {nis_per_dof:.1f})'
-        else:
-            self._failed_frames = 0
-        if self._failed_frames >= c.max_failed_frames or pos_sigma > c.max_position_sigma_m:
-            why = res.message or f'position sigma {pos_sigma:.2f} m'
-            self.reset(f'tracking lost ({why})')
-            res.state, res.message = self.state, f'lost: {why}'
-            return res
+            X[mi], None if sigma is None else sigma[mi], self._inflation,
+            remember=self._failed_frames == 0)
 
         # ---- map growth, keyframes
         t = time.perf_counter()
@@ -407,6 +401,63 @@ class VisualOdometry:
             self._prev_ids = np.union1d(self._prev_ids, found)
             timings['refind'] = (time.perf_counter() - t) * 1e3
         return res
+
+    def _judge(self, res: FrameResult, n_found: float, n_in_view: int) -> bool:
+        """Failed frames and loss (docs/method.md §7.4), then the online consistency
+        checks (health.py, §15) that may inflate the published covariance. True when
+        tracking was lost (the pipeline has reset)."""
+        c = self.cfg
+        pos_sigma = float(np.sqrt(np.max(np.diag(self.ekf.P)[POS])))
+        upd = self.ekf.last_update
+        nis_per_dof = upd.nis / (2 * upd.n_used) if upd.n_used else 0.0
+        res.nis_per_dof = nis_per_dof
+        if res.n_inliers < c.min_tracking_inliers:
+            self._failed_frames += 1
+            res.message = f'only {res.n_inliers} inliers'
+        elif nis_per_dof > c.max_nis_per_dof:
+            # the innovations disagree with the filter's own covariance: inconsistent
+            self._failed_frames += 1
+            res.message = f'innovation out of bounds (NIS per dof {nis_per_dof:.1f})'
+        else:
+            self._failed_frames = 0
+        if self._failed_frames >= c.max_failed_frames or pos_sigma > c.max_position_sigma_m:
+            why = res.message or f'position sigma {pos_sigma:.2f} m'
+            self.reset(f'tracking lost ({why})')
+            res.state, res.message = self.state, f'lost: {why}'
+            res.health, res.health_reason = Health.LOST.value, why
+            return True
+        report = self.health.assess(upd.nis, 2 * upd.n_used, n_found, n_in_view)
+        self._inflation = report.inflation
+        res.health, res.health_reason = report.status.value, report.reason
+        res.variance_factor, res.found_share = report.variance_factor, report.found_share
+        return False
+
+    def _check_rotation(self) -> None:
+        """A new keyframe: its rotation from the last one against the two-view geometry
+        (rotation_check.py, docs/method.md §15.2). A disagreement beyond the two views'
+        covariance is evidence the published covariance must hold, and DEGRADED."""
+        c = self.cfg
+        kfs = self.local_map.keyframes
+        if not c.rotation_check or len(kfs) < 2:
+            return
+        a, b = kfs[-2], kfs[-1]
+        check = check_rotation(self.camera.K, a.ids, a.px, a.T_world_cam_filter, b.ids,
+                               b.px, b.T_world_cam_filter, c.bootstrap_ransac_px,
+                               c.rotation_check_min_parallax_deg, H_OVER_E_RATIO,
+                               self.ekf.pose_covariance()[3:, 3:], seed=self.frame_index)
+        self.last_rotation_check = check
+        if check is not None and check.nees > c.rotation_check_max_nees:
+            self.world_cov.add_rotation_evidence(check.discrepancy_world)
+            self.health.flag(f'rotation {check.angle_deg:.2f} deg off the two-view geometry '
+                             f'(NEES {check.nees:.0f})')
+
+    def _map_points_in_view(self) -> int:
+        """Map points the prior puts inside the image (in front, within its bounds)."""
+        if not len(self.map):
+            return 0
+        px, front, _ = self.ekf.observe(self.map.X_world, with_jacobian=False)
+        ok = front & np.all(np.isfinite(px), axis=1)
+        return int(np.count_nonzero(self.camera.in_image(self.camera.distort(px[ok]))))
 
     def _predicted_pixels(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(ids, raw pixels) where the prior puts the last frame's tracks that have a map
@@ -428,20 +479,22 @@ class VisualOdometry:
         """Map growth (in-filter points, triangulation) and the keyframe decision of a
         tracked frame. Returns the number of new map points."""
         T_world_cam = self.ekf.T_world_cam
-        self._T_world_cam_at[self.frame_index] = T_world_cam
+        self.growth.remember_pose(self.frame_index, T_world_cam)
         grow_mask, n_new = has_point, 0
         if self.points is not None:
             n_new, grow_mask = self._refine_points(tracks, px, rows, X, T_world_cam)
-        n_new += self._grow_map(tracks, px, grow_mask, T_world_cam)
+        n_new += self.growth.grow(self.map, self.frame_index, tracks.ids, px, grow_mask,
+                                  T_world_cam, self.world_cov.last)
         if self.local_map is not None:
             # a keyframe keeps the update's inliers and the tracks that had no point
             # then (new points, candidates); the update's outliers stay out of the window
             keep = inlier_mask | ~has_point
             if self.local_map.consider(self.frame_index, T_world_cam, tracks.ids[keep],
                                        px[keep], self.map.contains(tracks.ids[keep]),
-                                       self.map, self.world_cov.last) and \
-                    self.finder is not None:
-                self.finder.describe(gray, tracks, self.map)
+                                       self.map, self.world_cov.last):
+                self._check_rotation()
+                if self.finder is not None:
+                    self.finder.describe(gray, tracks, self.map)
         return n_new
 
     # ------------------------------------------------------------------ point filter
@@ -458,13 +511,6 @@ class VisualOdometry:
         if predicted is None:
             return ids, px_pred
         return np.concatenate((predicted[0], ids)), np.concatenate((predicted[1], px_pred))
-
-    def _two_view_covariances(self, X_world: np.ndarray, T_world_a: np.ndarray,
-                              T_world_b: np.ndarray) -> np.ndarray:
-        """Position covariances of points triangulated from two views (poses taken as
-        exact: the uncertainty of the pixels only)."""
-        return point_covariances(X_world, [geo.invert_T(T_world_a), geo.invert_T(T_world_b)],
-                                 self.camera.K, self.cfg.pixel_sigma_px)
 
     def _update(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
                 X: np.ndarray, sigma: np.ndarray | None) -> np.ndarray:
@@ -487,7 +533,7 @@ class VisualOdometry:
         if len(rows):
             culled = self.map.record_observations(tracks.ids[rows], out.map_inliers,
                                                   self.frame_index)
-            self._banned.update(int(i) for i in culled)
+            self.growth.banned.update(int(i) for i in culled)
         return np.concatenate((rows[out.map_inliers], f_tracks[out.point_inliers]))
 
     def _refine_points(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
@@ -509,7 +555,7 @@ class VisualOdometry:
             depth = depth[depth > 0]
             free = ~in_map & ~in_filter
             new = [k for k in np.flatnonzero(free)[::-1]       # newest tracks first
-                   if int(tracks.ids[k]) not in self._banned
+                   if int(tracks.ids[k]) not in self.growth.banned
                    and int(tracks.ids[k]) not in self._filter_rejected]
             new = np.array(new[:pts.free_slots], np.int64)
             if len(new) and len(depth):
@@ -517,75 +563,8 @@ class VisualOdometry:
                         self.frame_index)
                 in_filter[new] = True
                 for tid in tracks.ids[new]:
-                    self._drop_candidate(int(tid))
+                    self.growth.drop(int(tid))
         return len(out.frozen_ids), in_map | in_filter
-
-    # ------------------------------------------------------------------ map growth
-    def _add_candidate(self, tid: int, frame_index: int, px_ideal: np.ndarray,
-                       T_world_cam: np.ndarray) -> None:
-        self._cand_frame[tid] = frame_index
-        self._cand_px[tid] = np.asarray(px_ideal, float)
-        self._cand_bearing[tid] = T_world_cam[:3, :3] @ self.camera.unproject(px_ideal)[0]
-
-    def _grow_map(self, tracks: Tracks, px: np.ndarray, has_point: np.ndarray,
-                  T_world_cam: np.ndarray) -> int:
-        """Triangulate candidate tracks whose rays now differ by enough parallax."""
-        c = self.cfg
-        alive = set(int(i) for i in tracks.ids)
-        for tid in [t for t in self._cand_frame if t not in alive]:
-            self._drop_candidate(tid)
-        self._banned &= alive          # ids are never reused: forget ended tracks
-        cand_rows = []
-        for k in np.flatnonzero(~has_point):
-            tid = int(tracks.ids[k])
-            if tid in self._banned:
-                continue
-            if tid not in self._cand_frame:
-                self._add_candidate(tid, self.frame_index, px[k], T_world_cam)
-            elif self._cand_frame[tid] != self.frame_index:
-                cand_rows.append(k)
-        n_added = 0
-        if cand_rows:
-            cand_rows = np.array(cand_rows)
-            ids = tracks.ids[cand_rows]
-            bearings_now = self.camera.unproject(px[cand_rows]) @ T_world_cam[:3, :3].T
-            bearings_then = np.array([self._cand_bearing[int(i)] for i in ids])
-            cos = np.clip(np.sum(bearings_now * bearings_then, axis=1), -1, 1)
-            parallax = np.degrees(np.arccos(cos))
-            ready = parallax >= c.triangulation_min_parallax_deg
-            frames = np.array([self._cand_frame[int(i)] for i in ids])
-            T_cam_world_now = geo.invert_T(T_world_cam)
-            for f in np.unique(frames[ready]):
-                sel = ready & (frames == f)
-                sel_ids = ids[sel]
-                px_then = np.array([self._cand_px[int(i)] for i in sel_ids])
-                tri = triangulate_points(
-                    geo.invert_T(self._T_world_cam_at[int(f)]), T_cam_world_now,
-                    px_then, px[cand_rows[sel]], self.camera.K,
-                    c.triangulation_max_reproj_px, c.triangulation_min_parallax_deg)
-                good = tri.valid
-                self.map.add(sel_ids[good], tri.X_world[good], self.frame_index,
-                             cov=self._two_view_covariances(
-                                 tri.X_world[good], self._T_world_cam_at[int(f)],
-                                 T_world_cam), anchor=self.world_cov.last)
-                n_added += int(np.count_nonzero(good))
-                for tid in sel_ids[good]:
-                    self._drop_candidate(int(tid))
-                # a track that fails with a wide baseline is unreliable: stop trying
-                hopeless = ~good & (parallax[sel] > 3 * c.triangulation_min_parallax_deg)
-                for tid in sel_ids[hopeless]:
-                    self._drop_candidate(int(tid))
-                    self._banned.add(int(tid))
-        # forget poses no candidate refers to any more
-        needed = set(self._cand_frame.values()) | {self.frame_index, self.frame_index - 1}
-        for f in [f for f in self._T_world_cam_at if f not in needed]:
-            del self._T_world_cam_at[f]
-        return n_added
-
-    def _drop_candidate(self, tid: int) -> None:
-        self._cand_frame.pop(tid, None)
-        self._cand_px.pop(tid, None)
-        self._cand_bearing.pop(tid, None)
 
     # ------------------------------------------------------------------ output
     def _fill_output(self, res: FrameResult, tracks: Tracks, has_point: np.ndarray,
@@ -598,7 +577,8 @@ class VisualOdometry:
         twist, twist_cov = self.ekf.twist_cam()
         # floor the variances: never publish a zero (infinitely confident) covariance
         res.pose_cov = cov + np.eye(6) * MIN_VARIANCE
-        res.twist_cam, res.twist_cov = twist, twist_cov + np.eye(6) * MIN_VARIANCE
+        res.twist_cam = twist
+        res.twist_cov = twist_cov * self._inflation + np.eye(6) * MIN_VARIANCE
         if res.bootstrapped:
             res.ok = True
         if not (np.all(np.isfinite(res.T_world_cam)) and np.all(np.isfinite(res.pose_cov))):
@@ -607,3 +587,6 @@ class VisualOdometry:
 
     _prev_ids = np.zeros(0, np.int64)
     _published_cov = np.zeros((6, 6))
+ 
+    last_rotation_check = None     #: the last keyframe pair's rotation_check.RotationCheck
+    _inflation = 1.0               #: the health checks' factor on the published covariance

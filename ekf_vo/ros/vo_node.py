@@ -276,16 +276,23 @@ class VoNode(Node):
 
     # ------------------------------------------------------------------ outputs
     def _log_state_change(self, result) -> None:
-        """initialising -> tracking -> lost, logged once per change with the reason."""
+        """initialising -> tracking -> lost, and tracking's ok <-> degraded, logged once
+        per change with the reason."""
         # the pipeline re-bootstraps at once after a loss: the frame says 'lost: why'
         state_name = 'lost' if result.message.startswith('lost') else result.state.value
+        if state_name == 'tracking' and result.health == 'degraded':
+            state_name = 'degraded'
         if state_name == self._last_state:
             return
         previous = self._last_state or 'started'
         self._last_state = state_name
-        why = f': {result.message}' if result.message else ''
-        log = self.get_logger().warning if state_name == 'lost' else self.get_logger().info
-        log(f'{previous} -> {state_name}{why}')
+        why = result.health_reason if state_name == 'degraded' else result.message
+        why = f': {why}' if why else ''
+        # rclpy fixes a call site's severity at its first call: one call per severity
+        if state_name in ('lost', 'degraded'):
+            self.get_logger().warning(f'{previous} -> {state_name}{why}')
+        else:
+            self.get_logger().info(f'{previous} -> {state_name}{why}')
 
     def _publish_odometry(self, result) -> None:
         T_odom_base, cov, twist, twist_cov = camera_to_base(
@@ -375,6 +382,10 @@ class VoNode(Node):
         lat = np.array(self._latencies_ms) if self._latencies_ms else np.zeros(1)
         r = self._last_result
         vals = {'state': r.state.value if r else 'waiting',
+                'health': (r.health or r.state.value) if r else 'waiting',
+                'health_reason': r.health_reason if r else '',
+                'variance_factor': round(r.variance_factor, 2) if r else 1.0,
+                'found_share': round(r.found_share, 2) if r else 1.0,
                 'fps': round(fps, 2), 'latency_p50_ms': round(float(np.percentile(lat, 50)), 2),
                 'latency_p95_ms': round(float(np.percentile(lat, 95)), 2),
                 'tracks': r.n_tracks if r else 0, 'inliers': r.n_inliers if r else 0,
@@ -389,13 +400,17 @@ class VoNode(Node):
         st = DiagnosticStatus()
         st.name = f'{self.get_name()}: visual odometry'
         st.hardware_id = 'camera'
-        if result.state == TrackingState.TRACKING and result.ok:
+        # OK / DEGRADED / LOST (docs/ros.md): degraded and initialising warn
+        if result.state == TrackingState.TRACKING and result.ok and result.health == 'ok':
             st.level = DiagnosticStatus.OK
-        elif result.state == TrackingState.INITIALISING:
+        elif result.state == TrackingState.INITIALISING or \
+                (result.state == TrackingState.TRACKING and result.health == 'degraded'):
             st.level = DiagnosticStatus.WARN
         else:
             st.level = DiagnosticStatus.ERROR
-        st.message = f'{result.state.value}: {result.message or "ok"}'
+        health = f' ({result.health})' if result.health else ''
+        why = result.health_reason or result.message or 'ok'
+        st.message = f'{result.state.value}{health}: {why}'
         st.values = [KeyValue(key=str(k), value=str(v)) for k, v in vals.items()]
         arr = DiagnosticArray()
         arr.header.stamp = conv.ns_to_stamp(result.stamp_ns)

@@ -1,0 +1,123 @@
+"""Map growth of the hybrid method: tracks without a point wait as candidates until their
+rays have enough parallax, then are triangulated with the filter's poses (docs/method.md
+§7.3).
+
+A candidate remembers the frame of its first observation, its ideal pixel there and its
+world bearing. Each tracked frame, candidates whose bearing now differs by
+`triangulation_min_parallax_deg` are triangulated from that frame's pose and the current
+one; a track that fails with three times that parallax is banned (unreliable). Ids are
+never reused, so ended tracks are simply forgotten.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import VoConfig
+from . import geometry as geo
+from .camera import PinholeCamera
+from .local_ba import point_covariances
+from .map import LandmarkMap
+from .triangulation import triangulate_points
+
+
+class MapGrowth:
+    """Triangulation candidates and the poses they were first seen from."""
+
+    def __init__(self, cfg: VoConfig, camera: PinholeCamera) -> None:
+        self.cfg = cfg
+        self.camera = camera
+        self.reset()
+
+    def reset(self) -> None:
+        self._frame: dict[int, int] = {}         # id -> frame index of first observation
+        self._px: dict[int, np.ndarray] = {}     # id -> ideal pixel there
+        self._bearing: dict[int, np.ndarray] = {}  # id -> world bearing there
+        #: tracks never to triangulate (failed with a wide baseline, culled, rejected)
+        self.banned: set[int] = set()
+        self._T_world_cam_at: dict[int, np.ndarray] = {}
+
+    def remember_pose(self, frame_index: int, T_world_cam: np.ndarray) -> None:
+        self._T_world_cam_at[frame_index] = T_world_cam
+
+    def add(self, tid: int, frame_index: int, px_ideal: np.ndarray,
+            T_world_cam: np.ndarray) -> None:
+        """A candidate first seen at `frame_index` (whose pose must be remembered)."""
+        self._frame[tid] = frame_index
+        self._px[tid] = np.asarray(px_ideal, float)
+        self._bearing[tid] = T_world_cam[:3, :3] @ self.camera.unproject(px_ideal)[0]
+
+    def drop(self, tid: int) -> None:
+        self._frame.pop(tid, None)
+        self._px.pop(tid, None)
+        self._bearing.pop(tid, None)
+
+    def two_view_covariances(self, X_world: np.ndarray, T_world_a: np.ndarray,
+                             T_world_b: np.ndarray) -> np.ndarray:
+        """Position covariances of points triangulated from two views (poses taken as
+        exact: the uncertainty of the pixels only)."""
+        return point_covariances(X_world, [geo.invert_T(T_world_a), geo.invert_T(T_world_b)],
+                                 self.camera.K, self.cfg.pixel_sigma_px)
+
+    def grow(self, landmarks: LandmarkMap, frame_index: int, ids: np.ndarray,
+             px: np.ndarray, has_point: np.ndarray, T_world_cam: np.ndarray,
+             anchor: tuple) -> int:
+        """Triangulate the candidates among the tracks (ids, ideal px) without a point
+        whose rays now differ by enough parallax; new points get `anchor`
+        (map_uncertainty.py). Returns how many were added to `landmarks`."""
+        alive = set(int(i) for i in ids)
+        for tid in [t for t in self._frame if t not in alive]:
+            self.drop(tid)
+        self.banned &= alive          # ids are never reused: forget ended tracks
+        cand_rows = []
+        for k in np.flatnonzero(~has_point):
+            tid = int(ids[k])
+            if tid in self.banned:
+                continue
+            if tid not in self._frame:
+                self.add(tid, frame_index, px[k], T_world_cam)
+            elif self._frame[tid] != frame_index:
+                cand_rows.append(k)
+        n_added = 0
+        if cand_rows:
+            n_added = self._triangulate(landmarks, frame_index, ids, px,
+                                        np.array(cand_rows), T_world_cam, anchor)
+        # forget poses no candidate refers to any more
+        needed = set(self._frame.values()) | {frame_index, frame_index - 1}
+        for f in [f for f in self._T_world_cam_at if f not in needed]:
+            del self._T_world_cam_at[f]
+        return n_added
+
+    def _triangulate(self, landmarks: LandmarkMap, frame_index: int, all_ids: np.ndarray,
+                     px: np.ndarray, cand_rows: np.ndarray, T_world_cam: np.ndarray,
+                     anchor: tuple) -> int:
+        c = self.cfg
+        ids = all_ids[cand_rows]
+        bearings_now = self.camera.unproject(px[cand_rows]) @ T_world_cam[:3, :3].T
+        bearings_then = np.array([self._bearing[int(i)] for i in ids])
+        cos = np.clip(np.sum(bearings_now * bearings_then, axis=1), -1, 1)
+        parallax = np.degrees(np.arccos(cos))
+        ready = parallax >= c.triangulation_min_parallax_deg
+        frames = np.array([self._frame[int(i)] for i in ids])
+        T_cam_world_now = geo.invert_T(T_world_cam)
+        n_added = 0
+        for f in np.unique(frames[ready]):
+            sel = ready & (frames == f)
+            sel_ids = ids[sel]
+            px_then = np.array([self._px[int(i)] for i in sel_ids])
+            T_then = self._T_world_cam_at[int(f)]
+            tri = triangulate_points(
+                geo.invert_T(T_then), T_cam_world_now, px_then, px[cand_rows[sel]],
+                self.camera.K, c.triangulation_max_reproj_px, c.triangulation_min_parallax_deg)
+            good = tri.valid
+            landmarks.add(sel_ids[good], tri.X_world[good], frame_index,
+                          cov=self.two_view_covariances(tri.X_world[good], T_then,
+                                                        T_world_cam), anchor=anchor)
+            n_added += int(np.count_nonzero(good))
+            for tid in sel_ids[good]:
+                self.drop(int(tid))
+            # a track that fails with a wide baseline is unreliable: stop trying
+            hopeless = ~good & (parallax[sel] > 3 * c.triangulation_min_parallax_deg)
+            for tid in sel_ids[hopeless]:
+                self.drop(int(tid))
+                self.banned.add(int(tid))
+        return n_added
