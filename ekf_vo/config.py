@@ -374,6 +374,11 @@ class NodeConfig(_Params):
     queue_size: int = param(
         2, 'queue_policy latest: frames waiting for the estimator; older ones are dropped '
         'and counted.', 'count', 1, 100, group='ros')
+    camera_info_wait_s: float = param(
+        0.05, 'An image waits at most this long for the CameraInfo of its stamp '
+        '(image_transport\'s pairing, whichever comes first); once CameraInfo stops '
+        'matching image stamps, images go on with the last valid one at once.', 's', 0.0,
+        5.0, group='ros')
     publish_path: bool = param(True, 'Publish ~/path (nav_msgs/Path) for RViz.', group='ros')
     max_path_length: int = param(5000, 'Poses kept in ~/path.', 'count', 1, 1000000,
                                  group='ros')

@@ -133,7 +133,10 @@ def test_faults_then_good_frames(tmp_path, demo):
         h.spin_until(lambda: feed.status and any(
             kv.key == 'time_resets' for kv in feed.status[-1].status[0].values), 3.0)
         values = {kv.key: kv.value for kv in feed.status[-1].status[0].values}
-        assert int(values.get('no_camera_info', 0)) >= 3
+        # the three images before any CameraInfo: each waited for its CameraInfo, then was
+        # rejected, unless the live queue (queue_size 2) dropped it first
+        assert int(values.get('no_camera_info', 0)) + \
+            int(values.get('dropped_behind', 0)) >= 3
         assert int(values.get('bad_image', 0)) >= 4
         assert int(values.get('bad_camera_info', 0)) >= 2
         assert int(values.get('duplicate_stamp', 0)) >= 1
@@ -148,3 +151,61 @@ def test_faults_then_good_frames(tmp_path, demo):
     finally:
         h.close()
         vo.stop()
+
+
+def test_camera_info_after_its_image_and_bad_calibrations_mid_stream(tmp_path, demo):
+    """image_transport's order (each CameraInfo after its image) loses no frame: vo_node
+    publishes its first pose at the frame ekf-vo-run does on the same frames. A K = 0
+    and a NaN CameraInfo mid-stream cost their own images only: no reset, odometry for
+    every other frame, no NaN, and the degraded/tracking transitions are logged."""
+    from ekf_vo.core.camera import PinholeCamera
+    from ekf_vo.core.stream import VoStream
+    from ekf_vo.config import VoConfig
+    info, frames = demo
+    offline = VoStream(VoConfig())
+    offline.set_camera(PinholeCamera.from_camera_info(info))
+    first_offline = next(s for s, g in frames[:40] if getattr(offline.process(g, s), 'ok',
+                                                               False))
+    offline.vo.local_map.close()
+
+    vo = NodeProcess('ekf_vo.ros.vo_node', [
+        '-r', 'image:=/cam/image', '-r', 'camera_info:=/cam/camera_info',
+        '-r', 'odom:=/odom', '-p', 'reliable_qos:=true'],
+        DOMAIN, tmp_path / 'vo.log')
+    vo.wait_for_output('vo_node ready')
+    h = Harness(DOMAIN)
+    try:
+        feed = Feeder(h, info)
+        feed.wait_connected()
+        good = lambda k, s, g: conv.numpy_to_image(g, 'mono8', s, 'camera_optical')  # noqa
+        stamps = feed.publish(frames[:40], good, RATE_HZ, info_after=True)
+        feed.wait_last(stamps[-1])
+        assert min(feed.odom_wall) == first_offline, 'the first frame was lost'
+
+        bad_at = {5: 'zero', 12: 'nan'}
+
+        def make_info(k, stamp):
+            msg = feed.camera_info(stamp)
+            if bad_at.get(k) == 'zero':
+                msg.k = [0.0] * 9
+            elif bad_at.get(k) == 'nan':
+                msg.k = [float('nan')] + list(msg.k[1:])
+            return msg
+        stamps = feed.publish(frames[40:70], good, RATE_HZ, info_after=True,
+                              make_info=make_info)
+        feed.wait_last(stamps[-1])
+        got = set(feed.odom_wall)
+        missing = [k for k, s in enumerate(stamps) if s not in got]
+        assert missing == sorted(bad_at), missing
+        for m in feed.odom:
+            assert np.all(np.isfinite(m.pose.covariance))
+        h.spin_for(0.6)
+        values = {kv.key: kv.value for kv in feed.status[-1].status[0].values}
+        assert values['resets'] == '0' and int(values['bad_camera_info']) == 2
+        assert int(values['bad_camera_info_image']) == 2
+    finally:
+        h.close()
+        vo.stop()
+    log = vo.output()
+    assert log.count('started -> ') == 1
+    assert 'Traceback' not in log

@@ -32,6 +32,7 @@ class Pairing:
     camera: PinholeCamera | None
     wait: bool = False       #: no CameraInfo at or after the image's stamp yet
     invalid: bool = False    #: the image's own CameraInfo was invalid: reject the image
+    exact: bool = False      #: a valid CameraInfo of exactly this stamp
 
 
 class CalibrationBook:
@@ -68,9 +69,10 @@ class CalibrationBook:
         if i and self._stamps[i - 1] == stamp_ns and self._cameras[i - 1] is None:
             return Pairing(None, invalid=True)
         wait = not self._stamps or self._stamps[-1] < stamp_ns
+        exact = bool(i) and self._stamps[i - 1] == stamp_ns
         for cam in reversed(self._cameras[:i]):
             if cam is not None:
-                return Pairing(cam, wait=wait)
+                return Pairing(cam, wait=wait, exact=exact)
         for cam in self._cameras[i:]:          # older than every valid one: the oldest
             if cam is not None:
                 return Pairing(cam, wait=wait)

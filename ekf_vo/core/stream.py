@@ -4,6 +4,9 @@
 demo and the benchmarks — so the rules about inputs are written once:
 - camera: the first valid calibration starts the estimator; a different one (intrinsics,
   distortion or size; camera.PinholeCamera.same_as) restarts it on the next frame;
+  stamped CameraInfo (`add_camera_info`) is paired with the image of its stamp, whichever
+  comes first (pairing.py): an image whose own CameraInfo was invalid is rejected with
+  it, and a changed calibration applies from the image of its stamp;
 - stamps, in arrival order (`admit`): a duplicate, a slightly older stamp (out of order)
   or a jump of more than FUTURE_JUMP_S ahead is rejected; a stamp far behind the last one
   (TIME_RESET_S: a looping bag, a simulator reset) resets the estimator when that frame
@@ -26,6 +29,7 @@ import numpy as np
 
 from ..config import VoConfig
 from .camera import PinholeCamera
+from .pairing import CalibrationBook, Pairing
 from .pipeline import FrameResult, TrackingState, VisualOdometry
 
 logger = logging.getLogger(__name__)
@@ -64,6 +68,9 @@ class VoStream:
         self._last_stamp_ns: int | None = None        # last admitted (arrival order)
         self._last_processed_ns: int | None = None    # last run through the estimator
         self._pending_reset: str | None = None
+        self._book = CalibrationBook()             # stamped CameraInfo (pairing.py)
+        #: the last processed image had a CameraInfo of its own stamp (None: none yet)
+        self.last_pair_exact: bool | None = None
         #: guards the inputs (calibration, stamps, resets) so a node's callbacks may call
         #: in while its worker is inside the estimator, which runs outside this lock
         self._lock = threading.Lock()
@@ -78,12 +85,44 @@ class VoStream:
         with self._lock:
             if camera.same_as(self.camera):
                 return False
-            if self.camera is not None:
-                self.n_camera_changes += 1
-                logger.info('calibration changed: restarting the estimator')
-            self.camera = camera
-            self._replace_estimator(VisualOdometry(self.cfg, camera, seed=self.seed))
+            self._switch_camera(camera)
             return True
+
+    def _switch_camera(self, camera: PinholeCamera) -> None:
+        if self.camera is not None:
+            self.n_camera_changes += 1
+            logger.info('calibration changed: restarting the estimator')
+        self.camera = camera
+        self._replace_estimator(VisualOdometry(self.cfg, camera, seed=self.seed))
+
+    def add_camera_info(self, stamp_ns: int, info: Mapping[str, Any] | PinholeCamera
+                        ) -> bool:
+        """A CameraInfo stamped `stamp_ns`, for the image of that stamp (pairing.py).
+        Returns True when it started the estimator (the first valid one). Raises
+        CameraModelError or ValueError when unusable: its stamp is then recorded as
+        invalid, so that its image is rejected with it."""
+        try:
+            camera = info if isinstance(info, PinholeCamera) else \
+                PinholeCamera.from_camera_info(info)
+        except Exception:
+            self.reject_camera_info(stamp_ns)
+            raise
+        with self._lock:
+            self._book.add(stamp_ns, camera)
+            first = self.camera is None
+        return self.set_camera(camera) if first else False
+
+    def reject_camera_info(self, stamp_ns: int) -> None:
+        """A CameraInfo stamped `stamp_ns` that could not be used (the caller's check
+        failed): its image will be rejected with it."""
+        with self._lock:
+            self._book.add(stamp_ns, None)
+
+    def pairing(self, stamp_ns: int) -> Pairing | None:
+        """The calibration an image of this stamp would get now (None: no stamped
+        CameraInfo has come yet)."""
+        with self._lock:
+            return self._book.pair(stamp_ns) if len(self._book) else None
 
     def set_config(self, cfg: VoConfig) -> None:
         """New estimator parameters: the estimator restarts with them."""
@@ -129,6 +168,14 @@ class VoStream:
         Only one thread may call this (a node's worker); the others may call the rest."""
         stamp_ns = int(stamp_ns)
         with self._lock:
+            if len(self._book):
+                pair = self._book.pair(stamp_ns)
+                if pair.invalid:
+                    return self._reject('bad_camera_info_image', 'image dropped with its '
+                                        'invalid CameraInfo (same stamp)')
+                self.last_pair_exact = pair.exact
+                if pair.camera is not None and not pair.camera.same_as(self.camera):
+                    self._switch_camera(pair.camera)
             vo, camera = self.vo, self.camera
             if vo is None:
                 return self._reject('no_camera_info', 'image before any valid CameraInfo: '

@@ -180,23 +180,34 @@ class Feeder:
             'vo_node did not subscribe'
         self.h.spin_for(0.3)
 
-    def publish(self, frames, make_msg, rate_hz: float = 20.0) -> list[int]:
-        """Publish (stamp_ns, gray) frames; make_msg(k, stamp, gray) builds the image."""
+    def publish(self, frames, make_msg, rate_hz: float = 20.0, info_after: bool = False,
+                make_info=None) -> list[int]:
+        """Publish (stamp_ns, gray) frames; make_msg(k, stamp, gray) builds the image,
+        make_info(k, stamp) its CameraInfo (default: the calibration, same stamp), sent
+        before the image or, `info_after`, after it (image_transport's publisher order)."""
         stamps = []
         t_next = time.perf_counter()
         for k, (stamp, gray) in enumerate(frames):
-            self.info_pub.publish(self.conv.camera_info_from_params(
-                self.info['width'], self.info['height'], self.info['K'], self.info['D'],
-                self.info['distortion_model'], stamp, 'camera_optical'))
+            info = make_info(k, stamp) if make_info else self.camera_info(stamp)
+            if not info_after:
+                self.info_pub.publish(info)
             msg = make_msg(k, stamp, gray)
             self.sent_wall[stamp] = time.perf_counter()
             self.img_pub.publish(msg)
+            if info_after:
+                self.info_pub.publish(info)
             stamps.append(stamp)
             t_next += 1.0 / rate_hz
             while time.perf_counter() < t_next:
                 self.h.executor.spin_once(timeout_sec=max(0.0, min(
                     0.005, t_next - time.perf_counter())))
         return stamps
+
+    def camera_info(self, stamp: int):
+        """The calibration as a CameraInfo stamped `stamp`."""
+        return self.conv.camera_info_from_params(
+            self.info['width'], self.info['height'], self.info['K'], self.info['D'],
+            self.info['distortion_model'], stamp, 'camera_optical')
 
     def wait_last(self, stamp: int, timeout: float = 10.0) -> None:
         self.h.spin_until(lambda: stamp in self.odom_wall, timeout)

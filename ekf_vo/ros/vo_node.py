@@ -157,21 +157,20 @@ class VoNode(Node):
             self.get_logger().warning(f'{text} [{key}: {self.counters[key]} so far]')
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
+        """Recorded by stamp for the image of that stamp (core/pairing.py); a changed
+        calibration restarts the estimator at that image."""
+        stamp_ns = None
         try:
+            stamp_ns = conv.stamp_to_ns(msg.header.stamp)
             info = conv.camera_info_to_dict(msg)
             conv.validate_camera_info(info)
-            with self._lock:
-                had_camera = self.stream.camera is not None
-                changed = self.stream.set_camera(info)
-                self._map_restarted |= changed
+            self.stream.add_camera_info(stamp_ns, info)
         except (conv.ConversionError, CameraModelError, ValueError) as exc:
+            if stamp_ns is not None:
+                self.stream.reject_camera_info(stamp_ns)   # its image goes with it
             self._warn('bad_camera_info', f'CameraInfo rejected: {exc}')
-            return
-        if changed:
-            with self._queue_cv:
-                self._queue_cv.notify_all()      # frames may be waiting for a camera
-        if changed and had_camera:
-            self.get_logger().info('CameraInfo changed: re-initialising the estimator')
+        with self._queue_cv:
+            self._queue_cv.notify_all()      # a frame may be waiting for this stamp
 
     def _on_image(self, msg: Image) -> None:
         self._enqueue(msg, conv.IMAGE, 'image')
@@ -184,9 +183,6 @@ class VoNode(Node):
         self._last_image_time = time.monotonic()
         self.counters['received'] += 1
         replay = self.node_cfg.queue_policy == 'all'
-        if self.stream.camera is None and not replay:
-            self._warn('no_camera_info', f'{what} before any valid CameraInfo: skipped')
-            return
         try:
             stamp_ns = conv.stamp_to_ns(msg.header.stamp)
             gray = conv.decode_image(msgtype, msg, gray=True)
@@ -209,6 +205,18 @@ class VoNode(Node):
             self._queue.append((stamp_ns, gray, received))
             self._queue_cv.notify()
 
+    def _awaits_camera_info(self, item: tuple) -> bool:
+        """The frame `item` (stamp, image, arrival) should still wait for the CameraInfo
+        of its stamp: none at or after it has come, it arrived less than
+        camera_info_wait_s ago, and CameraInfo has been matching image stamps."""
+        stamp_ns, _, received = item
+        if time.perf_counter() - received >= self.node_cfg.camera_info_wait_s:
+            return False
+        pair = self.stream.pairing(stamp_ns)
+        if pair is None:
+            return True
+        return pair.wait and self.stream.last_pair_exact is not False
+
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
         self.counters['reset_requests'] += 1
@@ -222,11 +230,18 @@ class VoNode(Node):
         while not self._stop.is_set():
             with self._queue_cv:
                 # queue_policy all: frames that came before the first CameraInfo wait
+                replay = self.node_cfg.queue_policy == 'all'
                 while not self._stop.is_set() and (
-                        not self._queue or self.stream.camera is None):
+                        not self._queue or (replay and self.stream.camera is None)):
                     self._queue_cv.wait(timeout=0.2)
+                # the head waits (bounded) for the CameraInfo of its stamp
+                while not self._stop.is_set() and self._queue and \
+                        self._awaits_camera_info(self._queue[0]):
+                    self._queue_cv.wait(timeout=0.005)
                 if self._stop.is_set():
                     return
+                if not self._queue:
+                    continue
                 stamp_ns, gray, received = self._queue.popleft()
             try:
                 self._process(stamp_ns, gray, received)
@@ -242,7 +257,12 @@ class VoNode(Node):
         # the estimator runs outside the node's lock: callbacks (CameraInfo, ~/reset,
         # parameters) are never held up by a frame
         n_requested = self.stream.n_requested_resets
+        n_changes = self.stream.n_camera_changes
         result = self.stream.process(gray, stamp_ns)
+        if self.stream.n_camera_changes != n_changes:
+            with self._lock:
+                self._map_restarted = True
+            self.get_logger().info('CameraInfo changed: re-initialising the estimator')
         vo = self.stream.vo
         if isinstance(result, Rejection):
             self._warn(result.key, result.text)

@@ -375,7 +375,10 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
     stream = VoStream(cfg, seed=seed)
     stamps_s: list[float] = []
     poses: list[np.ndarray] = []
-    waiting: list[tuple[int, int, np.ndarray]] = []    # images before the first CameraInfo
+    #: images waiting for the CameraInfo of their stamp (core/pairing.py): until it comes
+    #: or the next image does; before the first CameraInfo, until it comes (as vo_node's
+    #: queue_policy all)
+    held: list[tuple[int, int, np.ndarray]] = []
     warned_info = False
 
     def process(log_ns: int, stamp_ns: int, gray: np.ndarray) -> None:
@@ -397,23 +400,35 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
             poses.append(np.asarray(res.T_world_cam, dtype=np.float64))
             summary.est_pose_cov.append(np.asarray(res.pose_cov, dtype=np.float64))
 
+    def flush(force: bool) -> None:
+        """Process the held images whose CameraInfo has come (force: the next image
+        came, the bound) once any calibration is known."""
+        while held:
+            pair = stream.pairing(held[0][1])
+            if pair is None or (pair.camera is None and not pair.invalid) or \
+                    (pair.wait and not force):
+                return                   # an invalid one goes on: the stream rejects it
+            process(*held.pop(0))
+
     t0 = time.perf_counter()
     for topic, msgtype, log_ns, msg in iter_bag(bag, [summary.image_topic,
                                                       summary.info_topic]):
         if topic == summary.info_topic:
+            info_stamp = None
             try:
+                info_stamp = stamp_to_ns(msg.header.stamp)
                 info = camera_info_to_dict(msg)
                 validate_camera_info(info)
-                if stream.set_camera(info) and stream.n_camera_changes:
-                    logger.warning('calibration changed at %d ns: restarting the VO', log_ns)
+                stream.add_camera_info(info_stamp, info)
             except (ConversionError, CameraModelError, ValueError) as exc:
+                if info_stamp is not None:
+                    stream.reject_camera_info(info_stamp)
                 if not warned_info:
                     logger.warning('unusable CameraInfo on %s: %s', topic, exc)
                     warned_info = True
-            while waiting and stream.camera is not None:
-                process(*waiting.pop(0))
+            flush(force=False)
             continue
-        if limit is not None and summary.frames + len(waiting) >= limit:
+        if limit is not None and summary.frames + len(held) >= limit:
             break
         if bar is not None:
             bar.update(1)
@@ -428,12 +443,12 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
         if rejected is not None:
             logger.warning('skipping image at %d ns: %s', log_ns, rejected.text)
             summary.frames_skipped += 1
-        elif stream.camera is None:
-            # as vo_node's queue_policy all: an image waits for the first CameraInfo
-            waiting.append((log_ns, stamp_ns, gray))
-        else:
-            process(log_ns, stamp_ns, gray)
-    summary.frames_skipped += len(waiting)        # no CameraInfo ever came for these
+            continue
+        flush(force=True)
+        held.append((log_ns, stamp_ns, gray))
+        flush(force=False)
+    flush(force=True)
+    summary.frames_skipped += len(held)        # no CameraInfo ever came for these
     summary.wall_s = time.perf_counter() - t0
     summary.n_resets = stream.n_resets
     summary.n_camera_changes = stream.n_camera_changes
