@@ -14,7 +14,8 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   unlike the rest of the sequence), which the images contradict (docs/method.md §14.4).
 - ``dino``: Middlebury dino, ground-truth bootstrap (the paper's protocol).
 - ``demo``: bags/demo (rendered, 640x480, 30 Hz).
-- ``walk`` / ``orbit``: rendered sequences (ekf-vo-synth), 300 frames, one per seed.
+- ``walk`` / ``orbit`` / ``ground_robot`` / ``handheld_rotation``: rendered sequences
+  (ekf-vo-synth; the frames of SYNTHETIC), one per seed.
 
     python -m bench.rotation_nees [--sequences ...] [--seeds 0 1 2] [--set NAME=VALUE ...]
                                   [--json OUT]
@@ -39,7 +40,10 @@ from ekf_vo.tools.run import parse_overrides, run_bag
 from .common import machine, shared_data, write_json
 from .real_data import PRESETS
 
-SEQUENCES = ('kitti_raw', 'kitti_jpeg', 'dino', 'demo', 'walk', 'orbit')
+#: rendered trajectories (ekf-vo-synth) and their length in frames (30 Hz): the ground
+#: robot's 760 frames are one loop of its rectangle, four turns in place
+SYNTHETIC = {'walk': 300, 'orbit': 300, 'ground_robot': 760, 'handheld_rotation': 300}
+SEQUENCES = ('kitti_raw', 'kitti_jpeg', 'dino', 'demo') + tuple(SYNTHETIC)
 REPO = Path(__file__).resolve().parents[1]
 #: first KITTI 06 frame whose ground-truth rotation is not the constant-rate segment
 KITTI_GT_RELIABLE_FROM = 12
@@ -65,27 +69,28 @@ def _folder_frames(name: str):
 
 
 def _run_stream(camera: dict, frames, overrides: dict, seed: int):
-    """Feed frames through VoStream; (stamps s, poses, covariances, frames, resets)."""
+    """Feed frames through VoStream; (stamps s, poses, covariances, ok per frame,
+    resets)."""
     cfg = dataclasses.replace(VoConfig(), **overrides).validate()
     stream = VoStream(cfg, seed=seed)
     stream.set_camera(PinholeCamera.from_camera_info(camera))
-    stamps, poses, covs, n = [], [], [], 0
+    stamps, poses, covs, oks = [], [], [], []
     for stamp_ns, gray, known in frames:
-        n += 1
         res = stream.process(gray, stamp_ns,
                              known if stream.state.value == 'initialising' else None)
-        if getattr(res, 'ok', False):
+        oks.append(bool(getattr(res, 'ok', False)))
+        if oks[-1]:
             stamps.append(stamp_ns * 1e-9)
             poses.append(res.T_world_cam)
             covs.append(res.pose_cov)
     if stream.vo is not None and stream.vo.local_map is not None:
         stream.vo.local_map.close()
-    return np.array(stamps), np.array(poses), np.array(covs), n, stream.n_resets
+    return np.array(stamps), np.array(poses), np.array(covs), oks, stream.n_resets
 
 
 def _synthetic(trajectory: str, seed: int, overrides: dict):
     from ekf_vo.tools.synth import SynthConfig, render_sequence
-    scfg = SynthConfig(frames=300, seed=seed, trajectory=trajectory)
+    scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory)
     seq = list(render_sequence(scfg))
     camera = {'width': scfg.width, 'height': scfg.height, 'K': scfg.K(), 'D': scfg.D(),
               'distortion_model': 'plumb_bob'}
@@ -99,7 +104,7 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
     """One sequence (and seed): tracking figures and the rotation NEES."""
     start = 0.0
     base = name.removesuffix('_from12')
-    if base in ('walk', 'orbit'):
+    if base in SYNTHETIC:
         gt_s, gt_T, out = _synthetic(base, seed, overrides)
     elif base == 'demo':
         from ekf_vo.io.bag import read_ground_truth
@@ -107,19 +112,29 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
         gt_ns, gt_T = read_ground_truth(REPO / 'bags' / 'demo')
         gt_s = np.asarray(gt_ns) * 1e-9
         out = (np.array(s.est_stamps_s), np.array(s.est_T_world_cam),
-               np.array(s.est_pose_cov), s.frames, s.n_resets)
+               np.array(s.est_pose_cov), [f.ok for f in s.frame_stats], s.n_resets)
     else:
         data, frames, preset = _folder_frames(base)
         gt_s, gt_T = data.gt_stamps_s, data.gt_T_world_cam
         out = _run_stream(data.camera, frames, dict(preset, **overrides), seed)
         if name.endswith('_from12'):
             start = data.stamps_ns[KITTI_GT_RELIABLE_FROM] * 1e-9
-    stamps, poses, covs, n_frames, resets = out
-    ev = evaluate(gt_s, gt_T, stamps, poses, max_time_diff_s=1e-3, n_frames_total=n_frames)
+    stamps, poses, covs, oks, resets = out
+    if len(stamps) < 3:
+        return {'sequence': name, 'seed': seed, 'pct_tracked': 0.0, 'first_pose_frame': None,
+                'pct_tracked_after_first': 0.0, 'ate_pct_path': float('nan'),
+                'resets': resets, 'rot_err_max_deg': float('nan'), 'rot_nees_mean': float('nan'),
+                'rot_nees_median': float('nan'), 'rot_nees_pct_above_99_9': float('nan'),
+                'rot_nees_frames': 0}
+    ev = evaluate(gt_s, gt_T, stamps, poses, max_time_diff_s=1e-3, n_frames_total=len(oks))
+    first = oks.index(True) if True in oks else len(oks)
+    after = oks[first:]
     keep = stamps >= start - 1e-6
     rn = rotation_nees(gt_s, gt_T, stamps[keep], poses[keep], stamps[keep], covs[keep],
                        1e-3)
     return {'sequence': name, 'seed': seed, 'pct_tracked': ev.pct_tracked,
+            'first_pose_frame': first,
+            'pct_tracked_after_first': 100.0 * sum(after) / max(len(after), 1),
             'ate_pct_path': ev.ate_sim3_pct_of_path, 'resets': resets,
             'rot_err_max_deg': float(np.max(rn.err_deg)), **rn.to_dict()}
 
@@ -143,20 +158,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rows = []
     print(f'# rotation NEES of the published covariance ({machine()})')
-    print('| sequence | seed | tracked % | resets | ATE % path | max rot err deg | '
-          'NEES mean | median | % > 16.27 |')
-    print('|---|---|---|---|---|---|---|---|---|')
+    print('| sequence | seed | first pose | tracked % after it | resets | ATE % path | '
+          'max rot err deg | NEES mean | median | % > 16.27 |')
+    print('|---|---|---|---|---|---|---|---|---|---|')
     for name in args.sequences:
-        real = not name.startswith(('walk', 'orbit'))
+        real = name not in SYNTHETIC
         for seed in (args.seeds[:1] if real else args.seeds):
             if real and name != 'demo' and shared_data(
                     'middlebury_dino' if name == 'dino' else 'kitti06_f0-50') is None:
-                print(f'| {name} | - | skipped: ../shared/data absent | | | | | | |')
+                print(f'| {name} | - | skipped: ../shared/data absent | | | | | | | |')
                 continue
             r = run_one(name, seed, overrides)
             rows.append(r)
             label = name + (' (ground-truth bootstrap)' if name == 'dino' else '')
-            print(f"| {label} | {seed} | {r['pct_tracked']:.1f} | {r['resets']} | "
+            print(f"| {label} | {seed} | {r['first_pose_frame']} | "
+                  f"{r['pct_tracked_after_first']:.1f} | {r['resets']} | "
                   f"{r['ate_pct_path']:.3f} | {r['rot_err_max_deg']:.2f} | "
                   f"{r['rot_nees_mean']:.1f} | {r['rot_nees_median']:.2f} | "
                   f"{r['rot_nees_pct_above_99_9']:.1f} |", flush=True)

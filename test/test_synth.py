@@ -51,11 +51,37 @@ def test_image_properties(scene: synth.Scene) -> None:
     assert 40 < img.mean() < 215 and img.std() > 25
 
 
-@pytest.mark.parametrize('name', synth.TRAJECTORIES)
+@pytest.mark.parametrize('name', ['walk', 'orbit', 'figure8'])
 def test_trajectory_realistic(name: str) -> None:
     st = synth.trajectory_stats(name, 20.0, SEED)
     assert 0.3 < st['speed_max'] < 1.1
     assert 10.0 < st['rot_max_deg_s'] < 45.0
+
+
+def test_ground_robot_drives_stops_and_turns_in_place() -> None:
+    """Four 90 deg turns per loop, each made standing still (the camera, 0.1 m ahead of
+    the axis, moves on a 0.1 m arc), at a constant height with no roll or pitch."""
+    from scipy.spatial.transform import Rotation
+    rate = 30.0
+    ts = np.arange(0, 25.1, 1 / rate)          # one period
+    Ts = np.stack([synth.trajectory_pose('ground_robot', float(t)) for t in ts])
+    assert np.allclose(Ts[:, 2, 3], 0.4)
+    assert np.allclose(Ts[:, 2, 1], -1.0)     # optical y points down: no roll, no pitch
+    dR = np.einsum('nji,njk->nik', Ts[:-1, :3, :3], Ts[1:, :3, :3])
+    ang = np.degrees(Rotation.from_matrix(dR).magnitude()) * rate
+    speed = np.linalg.norm(np.diff(Ts[:, :3, 3], axis=0), axis=1) * rate
+    turning = ang > 1.0
+    # turning, the camera only swings on the 0.1 m lever: v = 0.1 m x the turn rate
+    assert np.all(speed[turning] <= 0.1 * np.radians(ang[turning]) * 1.05 + 1e-6)
+    total = np.sum(ang[turning]) / rate
+    assert total == pytest.approx(360.0, abs=5.0)
+    st = synth.trajectory_stats('ground_robot', 20.0)
+    assert 0.8 < st['speed_max'] < 1.0 and 80 < st['rot_max_deg_s'] < 100
+
+
+def test_handheld_rotation_mostly_rotates() -> None:
+    st = synth.trajectory_stats('handheld_rotation', 20.0, SEED)
+    assert st['speed_max'] < 0.15 and 80 < st['rot_max_deg_s'] < 120
 
 
 def test_depth_matches_raycast(scene: synth.Scene) -> None:

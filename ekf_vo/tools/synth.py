@@ -235,6 +235,10 @@ TRAJECTORY_HELP = {
     'walk': 'hand-held wander through the room: smooth in all 6 DoF, turning slowly',
     'orbit': 'circle of radius 1.3 m at 1.5 m height, looking outward-forward at the walls',
     'figure8': 'lemniscate 3 m x 2 m at 1.4 m height, heading loosely following the path',
+    'ground_robot': 'camera 0.4 m up on a robot driving a 3 m x 2 m rectangle, stopping and '
+                    'turning 90 deg in place at each corner',
+    'handheld_rotation': 'hand-held at 1.5 m, mostly rotating: yaw +-30, pitch +-20, '
+                         'roll +-15 deg at up to ~100 deg/s, a few cm of translation',
 }
 #: fewest frames of a usable bag (the bootstrap needs two views)
 MIN_FRAMES = 2

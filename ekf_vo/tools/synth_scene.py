@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-TRAJECTORIES = ('walk', 'orbit', 'figure8')
+TRAJECTORIES = ('walk', 'orbit', 'figure8', 'ground_robot', 'handheld_rotation')
 
 # Room: x in [-3.5, 3.5], y in [-2.75, 2.75], z in [0, 2.8] (metres, world frame, z up).
 ROOM_MIN = np.array([-3.5, -2.75, 0.0])
@@ -401,11 +401,61 @@ def _euler_to_R(yaw: float, pitch: float, roll: float) -> np.ndarray:
     return R_wb @ R_bo
 
 
+#: ground_robot: the rectangle's corners (m, counter-clockwise), speed on an edge (m/s),
+#: turn rate in place (rad/s), pause before and after each turn (s), camera height and
+#: how far ahead of the turning axis it sits (m)
+_ROBOT_CORNERS = ((-1.5, -1.0), (1.5, -1.0), (1.5, 1.0), (-1.5, 1.0))
+_ROBOT_SPEED, _ROBOT_TURN_RATE, _ROBOT_PAUSE = 0.6, np.radians(60.0), 0.3
+_ROBOT_CAM_HEIGHT, _ROBOT_CAM_AHEAD = 0.4, 0.1
+
+
+def _smoothstep(u: float) -> float:
+    """0 -> 1 with zero slope at both ends (the speed starts and ends at rest)."""
+    u = min(max(u, 0.0), 1.0)
+    return 0.5 - 0.5 * math.cos(math.pi * u)
+
+
+def _ground_robot(t: float) -> tuple[float, float, float]:
+    """(x, y, heading) of a robot that drives each edge of a rectangle, stops, turns
+    90 deg in place, stops, and drives the next edge (peak speed pi/2 x the mean)."""
+    n = len(_ROBOT_CORNERS)
+    edges = []
+    for k in range(n):
+        a, b = np.array(_ROBOT_CORNERS[k]), np.array(_ROBOT_CORNERS[(k + 1) % n])
+        edges.append((a, b, float(np.linalg.norm(b - a)) / _ROBOT_SPEED))
+    turn = (np.pi / 2) / _ROBOT_TURN_RATE
+    period = sum(e[2] for e in edges) + n * (turn + 2 * _ROBOT_PAUSE)
+    t = t % period
+    heading0 = 0.0
+    for a, b, drive in edges:
+        if t < drive:
+            p = a + (b - a) * _smoothstep(t / drive)
+            return float(p[0]), float(p[1]), heading0
+        t -= drive
+        if t < _ROBOT_PAUSE:
+            return float(b[0]), float(b[1]), heading0
+        t -= _ROBOT_PAUSE
+        if t < turn:
+            return float(b[0]), float(b[1]), heading0 + np.pi / 2 * _smoothstep(t / turn)
+        t -= turn
+        heading0 += np.pi / 2
+        if t < _ROBOT_PAUSE:
+            return float(b[0]), float(b[1]), heading0
+        t -= _ROBOT_PAUSE
+    a = edges[0][0]
+    return float(a[0]), float(a[1]), heading0
+
+
 def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
     """T_world_cam (optical frame) at time ``t`` seconds of trajectory ``name``.
 
-    All trajectories are smooth in all six DOF, stay inside the free space of the room
-    (1-5 m from the surfaces they look at), peak ~0.5-1 m/s and ~20-40 deg/s.
+    walk, orbit and figure8 are smooth in all six DOF, stay inside the free space of the
+    room (1-5 m from the surfaces they look at), peak ~0.5-1 m/s and ~20-40 deg/s.
+    ground_robot: a camera 0.4 m above the floor, 0.1 m ahead of the axis a robot turns
+    about, driving a 3 m x 2 m rectangle at up to 0.94 m/s, stopping and turning 90 deg
+    in place (up to 94 deg/s) at each corner (period 25.1 s; ``seed`` does not change it).
+    handheld_rotation: a hand-held camera at 1.5 m that mostly rotates: yaw +-30 deg,
+    pitch +-20 deg, roll +-15 deg at up to ~100 deg/s, with a few cm of translation.
     """
     rng = np.random.default_rng([int(seed), 4242])
     ph = rng.uniform(0, 2 * np.pi, 12)
@@ -425,6 +475,18 @@ def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
         yaw = th + np.pi / 2 - 0.6 + 0.12 * np.sin(w(6.0) * t + ph[2])  # tangent, turned outward
         pitch = 0.1 + 0.12 * np.sin(w(7.0) * t + ph[3])
         roll = 0.06 * np.sin(w(4.5) * t + ph[4])
+    elif name == 'ground_robot':
+        xb, yb, heading = _ground_robot(float(t))
+        x = xb + _ROBOT_CAM_AHEAD * math.cos(heading)
+        y = yb + _ROBOT_CAM_AHEAD * math.sin(heading)
+        z, yaw, pitch, roll = _ROBOT_CAM_HEIGHT, heading, 0.0, 0.0
+    elif name == 'handheld_rotation':  # standing at the room's centre, facing east
+        x = 0.03 * np.sin(w(2.9) * t + ph[0])
+        y = 0.03 * np.sin(w(3.7) * t + ph[1])
+        z = 1.5 + 0.02 * np.sin(w(2.3) * t + ph[2])
+        yaw = np.radians(30.0) * np.sin(w(2.0) * t + ph[3])
+        pitch = 0.1 + np.radians(20.0) * np.sin(w(2.7) * t + ph[4])
+        roll = np.radians(15.0) * np.sin(w(3.3) * t + ph[5])
     elif name == 'figure8':  # lemniscate, heading follows the path loosely
         th = w(16.0) * t + ph[0]
         x, y = 1.5 * np.sin(th), 1.0 * np.sin(2 * th)
