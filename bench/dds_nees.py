@@ -1,0 +1,106 @@
+"""Rotation NEES of what vo_node publishes over DDS: the demo bag played into a fresh node.
+
+`ekf-vo-play` (the player's Python API) plays the demo bag's compressed images and
+CameraInfo in real time into vo_node (`queue_policy: all`: nothing dropped), every
+nav_msgs/Odometry is recorded, brought back from odom/base_link to the camera's optical
+frame with the node's extrinsic (docs/ros.md: T_world_cam = T_base_cam^-1 T_odom_base
+T_base_cam, rotation covariance R_bc^T Sigma R_bc), and compared with the bag's ground
+truth as bench.rotation_nees does.
+
+    python -m bench.dds_nees [--json OUT]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .common import machine, write_json
+
+IMAGE, INFO = '/camera/image_raw/compressed', '/camera/camera_info'
+
+
+def _record(bag: Path, work: Path) -> list:
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from ekf_vo.ros.harness import Harness, NodeProcess, domain_id_for
+    from ekf_vo.ros.player import play_bag
+    domain = domain_id_for(__name__)
+    node = NodeProcess('ekf_vo.ros.vo_node', [
+        '-p', 'image_transport:=compressed', '-r', 'image:=/camera/image_raw',
+        '-r', 'camera_info:=' + INFO, '-r', 'odom:=/odom', '-p', 'queue_policy:=all'],
+        domain, work / 'vo_node.log')
+    node.wait_for_output('vo_node ready')
+    h = Harness(domain)
+    try:
+        odom = h.record(Odometry, '/odom', QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
+                                                      history=HistoryPolicy.KEEP_ALL))
+        play_bag(h.node, bag, rate=1.0, topics=[IMAGE, INFO], clock=False, wait_for=['*'],
+                 wait_timeout_s=20.0)
+        n_last, quiet = -1, 0
+        while quiet < 3:                    # until the answers stop coming
+            h.spin_for(0.5)
+            quiet = quiet + 1 if len(odom) == n_last else 0
+            n_last = len(odom)
+    finally:
+        h.close()
+        node.stop()
+    return list(odom)
+
+
+def camera_poses(msgs: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps s, T_world_cam (n,4,4), 6x6 covariances whose rotation block is in the
+    camera's world frame) from odometry messages of a node with the default extrinsic."""
+    from ekf_vo import bridge as conv
+    from ekf_vo.config import NodeConfig
+    from ekf_vo.core import geometry as geo
+    from ekf_vo.core.frames import optical_to_body_extrinsic
+    cfg = NodeConfig()
+    T_bc = optical_to_body_extrinsic(cfg.T_base_cam_xyz, cfg.T_base_cam_xyzw)
+    R_bc = T_bc[:3, :3]
+    stamps, poses, covs = [], [], []
+    for m in msgs:
+        p, q = m.pose.pose.position, m.pose.pose.orientation
+        T_ob = geo.make_T(geo.quat_to_matrix(np.array([q.w, q.x, q.y, q.z])),
+                          np.array([p.x, p.y, p.z]))
+        stamps.append(conv.stamp_to_ns(m.header.stamp) * 1e-9)
+        poses.append(np.linalg.inv(T_bc) @ T_ob @ T_bc)
+        C = np.array(m.pose.covariance, float).reshape(6, 6)
+        cov = np.eye(6)
+        cov[3:, 3:] = R_bc.T @ C[3:, 3:] @ R_bc
+        covs.append(cov)
+    return np.array(stamps), np.array(poses), np.array(covs)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    p.add_argument('--json', type=Path)
+    args = p.parse_args(argv)
+    from ekf_vo.io.bag import read_ground_truth
+    from ekf_vo.tools.consistency import rotation_nees
+    from ekf_vo.tools.demo import demo_bag
+    bag = demo_bag()
+    with tempfile.TemporaryDirectory() as tmp:
+        msgs = _record(bag, Path(tmp))
+    if len(msgs) < 3:
+        print(f'bench.dds_nees: only {len(msgs)} odometry messages', file=sys.stderr)
+        return 1
+    stamps, poses, covs = camera_poses(msgs)
+    gt_ns, gt_T = read_ground_truth(bag)
+    rn = rotation_nees(np.asarray(gt_ns) * 1e-9, gt_T, stamps, poses, stamps, covs, 1e-3)
+    print(f'# rotation NEES of vo_node over DDS, demo bag ({machine()})')
+    print(f'odometry messages {len(msgs)}; rotation NEES mean {rn.mean:.2f}, median '
+          f'{rn.median:.2f}, {rn.pct_above_999:.1f} % above 16.27; max rotation error '
+          f'{np.max(rn.err_deg):.2f} deg')
+    if args.json:
+        write_json(args.json, {'machine': machine(), 'n_odometry': len(msgs), **rn.to_dict(),
+                               'rot_err_max_deg': float(np.max(rn.err_deg))})
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
