@@ -330,6 +330,20 @@ class VoConfig(_Params):
     rotation_check_min_parallax_deg: float = param(
         1.0, 'Keyframe pairs with less median parallax are not judged (the essential '
         'matrix needs a baseline).', 'deg', 0.0, 90.0, group='quality')
+    relocalise: bool = param(
+        True, 'After a loss, keep the map and find the camera in it by ORB descriptors and '
+        'PnP (docs/method.md §15.7) before re-bootstrapping (needs local_map).',
+        group='quality')
+    relocalise_timeout_s: float = param(
+        1.0, 'Re-bootstrap when relocalisation has failed on this much time of textured '
+        'images (frames without features, e.g. a covered lens, do not count).', 's', 0.0,
+        3600.0, group='quality')
+    relocalise_min_inliers: int = param(
+        25, 'PnP inliers needed to accept a relocalisation.', 'count', 6, 10000,
+        group='quality')
+    relocalise_max_hamming: int = param(
+        50, 'Largest Hamming distance (of 256 bits) of a relocalisation match.', 'bits', 1,
+        256, group='quality')
     max_position_sigma_m: float = param(
         10.0, 'Declare tracking lost when the position std exceeds this.', 'm', 1e-3, 1e6,
         group='quality')

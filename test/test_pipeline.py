@@ -51,10 +51,27 @@ def test_tracks_a_rendered_hand_held_sequence(sequence, estimator):
             assert set(r.timings_ms) >= {'track', 'total'}
 
 
-def test_lost_on_black_frames_then_rebootstraps_in_the_same_odom_frame(sequence):
+def test_lost_on_black_frames_relocalises_in_the_kept_map(sequence):
+    """Loss is declared within max_failed_frames of the blackout, nothing is published
+    while lost, the map is kept and the first good frame is found in it again."""
     camera, frames = sequence
     black = np.zeros_like(frames[0][1])
     vo = VisualOdometry(VoConfig(), camera)
+    results = [vo.process(black if 60 <= k < 66 else img, stamp)
+               for k, (stamp, img, _) in enumerate(frames)]
+    states = [r.state for r in results]
+    assert any(s == TrackingState.LOST for s in states[60:64])
+    assert not any(r.ok for r in results[61:66])
+    assert vo.n_resets == 0
+    assert results[66].ok and results[66].message.startswith('relocalised')
+
+
+def test_lost_on_black_frames_then_rebootstraps_in_the_same_odom_frame(sequence):
+    """relocalise: false, the behaviour before §15.7: the map is dropped and a new one is
+    attached to the last good pose."""
+    camera, frames = sequence
+    black = np.zeros_like(frames[0][1])
+    vo = VisualOdometry(VoConfig(relocalise=False), camera)
     results = []
     for k, (stamp, img, _) in enumerate(frames):
         results.append(vo.process(black if 60 <= k < 66 else img, stamp))
@@ -123,14 +140,20 @@ def test_time_going_backwards_resets_and_a_new_calibration_restarts(sequence):
     assert stream.n_resets == 1 and stream.state == TrackingState.INITIALISING
 
 
-def test_a_long_gap_resets_instead_of_extrapolating(sequence):
+@pytest.mark.parametrize('relocalise', [True, False])
+def test_a_long_gap_is_not_extrapolated(sequence, relocalise):
+    """After a gap longer than max_dt_s the motion model is not trusted: the camera is
+    found again in the map (relocalise) or the map is dropped (re-bootstrap)."""
     camera, frames = sequence
-    vo = VisualOdometry(VoConfig(max_dt_s=0.5), camera)
+    vo = VisualOdometry(VoConfig(max_dt_s=0.5, relocalise=relocalise), camera)
     for stamp, img, _ in frames[:30]:
         vo.process(img, stamp)
     assert vo.state == TrackingState.TRACKING
     r = vo.process(frames[30][1], frames[30][0] + 2_000_000_000)
-    assert vo.n_resets == 1 and not r.ok
+    if relocalise:
+        assert vo.n_resets == 0 and r.ok and r.message.startswith('relocalised')
+    else:
+        assert vo.n_resets == 1 and not r.ok
 
 
 def test_a_time_reset_is_not_lost_when_its_frame_is_dropped(sequence):

@@ -4,33 +4,36 @@ docs/method.md §1 and §7, step by step, per frame:
   INITIALISING: keep a reference frame; try the two-view bootstrap against each new frame
                 (essential matrix + triangulation) until one has enough parallax and
                 inliers; the EKF starts at the second frame's pose with the velocity of
-                the pair (docs/method.md §3.6).
+                the pair (docs/method.md §3.6). In initialisation.py (a mixin).
   TRACKING:     predict (constant velocity, real dt) -> track features with the predicted
                 landmark pixels as the KLT prior -> robust EKF update with the fixed map
                 points (1-point RANSAC) -> triangulate tracks with enough parallax between
                 their first observation and now, with the EKF poses -> output.
-  LOST:         too many failed frames or a covariance blow-up: drop the map and
-                re-bootstrap, attaching the new map to the last good pose (odom continuity)
-                with the scale carried over from the last velocity.
+  LOST:         too many failed frames, a gap in the stream or a covariance blow-up: keep
+                the map and find the camera in it again (relocalise.py, §15.7); after
+                relocalise_timeout_s drop the map and re-bootstrap, attaching the new map
+                to the last good pose (odom continuity) with the scale carried over from
+                the last velocity and the covariance from the last published pose.
+Each tracked frame is judged (health.py: OK / DEGRADED) and its published covariance
+holds the map's error (map_uncertainty.py, §14-15).
 Speaks numpy arrays, integer nanosecond stamps and named frames; no ROS types.
 """
 from __future__ import annotations
 
-import enum
 import logging
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..config import VoConfig
-from . import geometry as geo
 from .bootstrap import H_OVER_E_RATIO, TwoViewBootstrap
 from .camera import PinholeCamera
-from .ekf import POS, VEL, CameraEKF, FilterError
+from .ekf import ANG, POS, VEL, CameraEKF, FilterError
 from .estimators import FrameMatches, make_estimator
 from .features import FeatureTracker, Tracks
+from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
 from .health import Health, HealthMonitor
+from .initialisation import Initialisation
 from .local_map import LocalMapper
 from .map import LandmarkMap
 from .map_growth import MapGrowth
@@ -38,66 +41,13 @@ from .map_uncertainty import WorldCovariance
 from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
 from .refind import MapPointFinder
+from .relocalise import Relocaliser
 from .rotation_check import check_rotation
 from .point_filter import PointFilter
 
 logger = logging.getLogger(__name__)
 
-#: smallest variance (m^2, rad^2) of a published pose: a zero covariance would read as
-#: infinite confidence to robot_localization (docs/ros.md)
-MIN_VARIANCE = 1e-9
-
-
-class TrackingState(enum.Enum):
-    INITIALISING = 'initialising'
-    TRACKING = 'tracking'
-    LOST = 'lost'
-
-
-@dataclass
-class FrameResult:
-    """What the pipeline says about one frame. Pose fields are None unless `ok`."""
-
-    stamp_ns: int
-    state: TrackingState
-    ok: bool = False                        #: a pose worth publishing
-    T_world_cam: np.ndarray | None = None   #: 4x4 camera optical frame -> world
-    pose_cov: np.ndarray | None = None      #: 6x6 (position, world rotation vector)
-    twist_cam: np.ndarray | None = None     #: (6,) v^C [m/s], w^C [rad/s], camera frame
-    twist_cov: np.ndarray | None = None     #: 6x6
-    n_tracks: int = 0
-    n_matches: int = 0                      #: tracks with a landmark used in the update
-    n_inliers: int = 0
-    n_new_points: int = 0
-    n_found_again: int = 0                  #: map points found again (tracks from now)
-    nis_per_dof: float = 0.0               #: normalised innovation squared / (2 n)
-    map_size: int = 0
-    bootstrapped: bool = False              #: this frame completed a (re-)bootstrap
-    #: online checks of a tracked frame (health.py): 'ok', 'degraded' or 'lost', and why
-    health: str = ''
-    health_reason: str = ''
-    variance_factor: float = 1.0            #: windowed NIS / dof
-    found_share: float = 1.0                #: inliers / map points the prior put in view
-    message: str = ''                       #: why not ok / what happened
-    timings_ms: dict = field(default_factory=dict)
-    track_ids: np.ndarray | None = None     #: (n,) for debug drawing
-    track_px: np.ndarray | None = None      #: (n,2) raw pixels
-    track_inlier: np.ndarray | None = None  #: (n,) bool, used as an inlier this frame
-    track_has_point: np.ndarray | None = None
-
-
-@dataclass
-class _Reference:
-    """The first frame of a bootstrap pair."""
-
-    stamp_ns: int
-    frame_index: int
-    ids: np.ndarray
-    px_ideal: np.ndarray
-    T_world_cam: np.ndarray | None  # known pose (ground-truth bootstrap) if given
-
-
-class VisualOdometry:
+class VisualOdometry(Initialisation):
     """Monocular VO with the hybrid camera-only EKF. One instance per camera."""
 
     def __init__(self, cfg: VoConfig, camera: PinholeCamera, seed: int = 0) -> None:
@@ -115,9 +65,14 @@ class VisualOdometry:
         # the map's error in the published covariance (docs/method.md §14)
         self.world_cov = WorldCovariance(cfg.map_in_covariance, camera.K, cfg.pixel_sigma_px)
         # map points found again by descriptor (docs/method.md §12.5); None = off
-        self.finder = MapPointFinder(cfg) if cfg.local_map and cfg.refind_map_points \
+        # (the keyframes' descriptors also serve relocalisation)
+        self.finder = MapPointFinder(cfg) if cfg.local_map and (
+            cfg.refind_map_points or cfg.relocalise) \
             else None
         self.rng = np.random.default_rng(seed)
+        # after a loss, the camera is found again in the kept map (§15.7); None = off
+        self.relocaliser = Relocaliser(cfg, camera) if cfg.local_map and cfg.relocalise \
+            else None
         self.growth = MapGrowth(cfg, camera)        # triangulation candidates (§7.3)
         self.health = HealthMonitor(cfg)            # online consistency checks (§15)
         # in-filter map refinement (docs/method.md §8); None = the hybrid default
@@ -138,7 +93,7 @@ class VisualOdometry:
         self.map.clear()
         if self.local_map is not None:
             self.local_map.reset()
-        self._ref: _Reference | None = None
+        self._ref = None                # the bootstrap's reference frame (initialisation.py)
         self._last_stamp_ns: int | None = None
         self._failed_frames = 0
         self.growth.reset()
@@ -159,6 +114,67 @@ class VisualOdometry:
         self.n_resets += 1
         self._reset_state()
 
+    def _lose(self, reason: str) -> None:
+        """Tracking lost: keep the map and look for the camera in it (relocalise.py) for
+        relocalise_timeout_s; without a relocaliser or a described map, re-bootstrap."""
+        if self.relocaliser is None or self.state != TrackingState.TRACKING or \
+                not len(self.map.described()[0]):
+            self.reset(reason)
+            return
+        logger.info('VO lost: %s; relocalising', reason)
+        # what a re-bootstrap needs if relocalisation fails (reset() saves it when tracking)
+        self._anchor_T_world_cam = self.ekf.T_world_cam
+        self._anchor_speed = float(np.linalg.norm(self.ekf.x[VEL]))
+        self.world_cov.carry(self.ekf.pose_covariance(), self.ekf.x[POS])
+        self._lost_velocity = (self.ekf.x[VEL].copy(), self.ekf.x[ANG].copy())
+        self._reloc_failed_s = 0.0
+        self.state = TrackingState.LOST
+        self.tracker.reset()
+        self.health.reset()
+        self.growth.reset()
+        self._failed_frames = 0
+        self._prev_ids = np.zeros(0, np.int64)
+
+    def _relocalise(self, gray: np.ndarray, stamp_ns: int) -> FrameResult:
+        """A frame while lost: pose it in the kept map, or re-bootstrap after
+        relocalise_timeout_s. The filter restarts at the PnP pose and covariance with the
+        velocities it had when it lost track."""
+        tracks = self.tracker.track(gray)
+        res = FrameResult(stamp_ns, TrackingState.LOST, n_tracks=len(tracks),
+                          health=Health.LOST.value, health_reason='relocalising')
+        found = self.relocaliser.attempt(gray, self.map)
+        if found is None:
+            # only frames with texture count: a covered lens may last, a map that is not
+            # recognised in good images is given relocalise_timeout_s
+            if len(tracks) >= self.cfg.bootstrap_min_inliers and self._last_stamp_ns:
+                self._reloc_failed_s += (stamp_ns - self._last_stamp_ns) * 1e-9
+            res.message = f'lost: relocalising ({self._reloc_failed_s:.1f} s in vain)'
+            if self._reloc_failed_s > self.cfg.relocalise_timeout_s:
+                self.reset(f'not relocalised in {self._reloc_failed_s:.1f} s of images')
+                res.state = self.state
+            return res
+        tracks = self.tracker.adopt(found.ids, found.px)
+        c = self.cfg
+        v_world, w_cam = self._lost_velocity
+        # the velocities are stale by the time lost: uncertain by twice their size
+        self.ekf.initialise(found.T_world_cam, v_world, w_cam, c.init_pose_sigma,
+                            max(c.init_velocity_sigma, 2 * float(np.linalg.norm(v_world))),
+                            max(c.init_angular_velocity_sigma,
+                                2 * float(np.linalg.norm(w_cam))))
+        self.ekf.set_pose(found.T_world_cam, found.pose_cov)
+        self.state = TrackingState.TRACKING
+        self.growth.remember_pose(self.frame_index, found.T_world_cam)
+        self._inflation = 1.0
+        self._published_cov = self.world_cov.compose(
+            found.pose_cov, found.T_world_cam, self.map, found.ids,
+            self.map.lookup(found.ids)[1], None)
+        res.state, res.ok, res.n_inliers = TrackingState.TRACKING, True, len(found.ids)
+        res.health, res.health_reason = Health.OK.value, ''
+        res.message = f'relocalised on {len(found.ids)} map points'
+        has_point = self.map.contains(tracks.ids)
+        self._fill_output(res, tracks, has_point, np.isin(tracks.ids, found.ids))
+        return res
+
     # ------------------------------------------------------------------ main entry
     def process(self, gray: np.ndarray, stamp_ns: int,
                 known_T_world_cam: np.ndarray | None = None) -> FrameResult:
@@ -172,10 +188,12 @@ class VisualOdometry:
         stamp_ns = int(stamp_ns)
         if self._last_stamp_ns is not None and self.state == TrackingState.TRACKING and \
                 (stamp_ns - self._last_stamp_ns) * 1e-9 > self.cfg.max_dt_s:
-            self.reset(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s')
+            self._lose(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s')
         self.frame_index += 1
         if self.state == TrackingState.TRACKING:
             result = self._track(gray, stamp_ns)
+        elif self.state == TrackingState.LOST:
+            result = self._relocalise(gray, stamp_ns)
         elif self.multiview is not None:
             result = self._initialise_multi_view(gray, stamp_ns, known_T_world_cam)
         else:
@@ -184,151 +202,6 @@ class VisualOdometry:
         result.map_size = len(self.map)
         result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
         return result
-
-    # ------------------------------------------------------------------ bootstrap
-    def _track_initialising(self, gray: np.ndarray, stamp_ns: int
-                            ) -> tuple[Tracks, np.ndarray, FrameResult]:
-        """Front end of a frame before tracking: tracks, their ideal pixels, a result."""
-        t = time.perf_counter()
-        tracks = self.tracker.track(gray)
-        timings = {'track': (time.perf_counter() - t) * 1e3}
-        px = self.camera.undistort(tracks.px)
-        res = FrameResult(stamp_ns, TrackingState.INITIALISING, n_tracks=len(tracks),
-                          timings_ms=timings, track_ids=tracks.ids, track_px=tracks.px)
-        return tracks, px, res
-
-    def _initialise(self, gray: np.ndarray, stamp_ns: int,
-                    known_T: np.ndarray | None) -> FrameResult:
-        tracks, px, res = self._track_initialising(gray, stamp_ns)
-        timings = res.timings_ms
-        ref = self._ref
-        too_old = ref is not None and self.frame_index - ref.frame_index > \
-            self.cfg.bootstrap_max_frames
-        n_common = 0 if ref is None else len(np.intersect1d(ref.ids, tracks.ids))
-        if ref is None or too_old or n_common < self.cfg.bootstrap_min_inliers:
-            if len(tracks) >= self.cfg.bootstrap_min_inliers:
-                self._ref = _Reference(stamp_ns, self.frame_index, tracks.ids.copy(),
-                                       px.copy(), known_T)
-                res.message = 'bootstrap: new reference frame'
-            else:
-                res.message = f'bootstrap: only {len(tracks)} features'
-            return res
-
-        t = time.perf_counter()
-        if ref.T_world_cam is not None and known_T is not None:
-            boot = self.bootstrapper.from_known_poses(
-                geo.invert_T(ref.T_world_cam), geo.invert_T(known_T),
-                ref.ids, ref.px_ideal, tracks.ids, px)
-            T_world_ref, T_world_cur = ref.T_world_cam, known_T
-            X_world = getattr(boot, 'X_world', None)
-        else:
-            baseline = None
-            if self._anchor_speed is not None and self._anchor_speed > 0:
-                # carry the scale over a re-bootstrap: distance = speed * elapsed time
-                baseline = self._anchor_speed * (stamp_ns - ref.stamp_ns) * 1e-9
-            boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
-                                              baseline=baseline)
-            if boot.ok:
-                T_world_ref = self._anchor_T_world_cam
-                T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
-                X_world = geo.transform_points(T_world_ref, boot.X_ref)
-        timings['bootstrap'] = (time.perf_counter() - t) * 1e3
-        if not boot.ok:
-            res.message = f'bootstrap refused: {boot.reason}'
-            return res
-
-        self._start_tracking(res, gray, tracks, px, boot.point_ids, X_world, T_world_ref,
-                             T_world_cur, (stamp_ns - ref.stamp_ns) * 1e-9,
-                             [(ref.frame_index, ref.ids, ref.px_ideal, T_world_ref)])
-        res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
-                       f'{boot.median_parallax_deg:.1f} deg')
-        return res
-
-    def _start_tracking(self, res: FrameResult, gray: np.ndarray, tracks: Tracks,
-                        px: np.ndarray, point_ids: np.ndarray, X_world: np.ndarray,
-                        T_world_prev: np.ndarray, T_world_cur: np.ndarray, dt: float,
-                        sources: list) -> None:
-        """Start tracking (docs/method.md §3.6) on the image `gray`: the map, the pose of
-        the current (last bootstrap) frame, velocities from the difference of the last two bootstrap
-        poses `dt` seconds apart. `sources`: earlier bootstrap frames (frame index, ids,
-        ideal px, T_world_cam), oldest first, from which tracks without a point become
-        triangulation candidates (wider baseline than from now)."""
-        anchor = self.world_cov.bootstrap_anchor(sources[0][3], T_world_cur, X_world)
-        self.map.add(point_ids, X_world, self.frame_index,
-                     cov=self.growth.two_view_covariances(X_world, sources[0][3], T_world_cur),
-                     anchor=anchor)
-        dt = max(dt, 1e-6)
-        v_world = (T_world_cur[:3, 3] - T_world_prev[:3, 3]) / dt
-        R_rel = T_world_prev[:3, :3].T @ T_world_cur[:3, :3]
-        w_cam = geo.quat_to_rotvec(geo.matrix_to_quat(R_rel)) / dt
-        c = self.cfg
-        self.ekf.initialise(T_world_cur, v_world, w_cam, c.init_pose_sigma,
-                            c.init_velocity_sigma, c.init_angular_velocity_sigma)
-        self._published_cov = self.ekf.pose_covariance() + anchor[0]
-        self._inflation = 1.0
-        self.world_cov.last = (self._published_cov, T_world_cur[:3, 3].copy())
-        self.state = TrackingState.TRACKING
-        self._failed_frames = 0
-        for f, _, _, T in sources:
-            self.growth.remember_pose(f, T)
-        self.growth.remember_pose(self.frame_index, T_world_cur)
-        rows = [{int(i): k for k, i in enumerate(ids)} for _, ids, _, _ in sources]
-        has_point = self.map.contains(tracks.ids)
-        for k in np.flatnonzero(~has_point):
-            tid = int(tracks.ids[k])
-            for (f, _, src_px, T), row in zip(sources, rows):
-                if tid in row:
-                    self.growth.add(tid, f, src_px[row[tid]], T)
-                    break
-            else:
-                self.growth.add(tid, self.frame_index, px[k], T_world_cur)
-        if self.local_map is not None:
-            for k, (f, ids, src_px, T) in enumerate(sources):
-                self.local_map.add_keyframe(f, T, ids, src_px, anchor if k else
-                                            self.world_cov.origin_anchor(T))
-            self.local_map.add_keyframe(self.frame_index, T_world_cur, tracks.ids, px,
-                                        anchor)
-        if self.finder is not None:
-            self.finder.describe(gray, tracks, self.map)
-        res.bootstrapped = True
-        res.health = 'ok'
-        self._fill_output(res, tracks, has_point, has_point)
-
-    def _initialise_multi_view(self, gray: np.ndarray, stamp_ns: int,
-                               known_T: np.ndarray | None) -> FrameResult:
-        """`bootstrap: multi_view` (multiview.py): keyframes, PnP, bundle adjustment.
-        Frames posed by PnP while the keyframes are collected are published."""
-        tracks, px, res = self._track_initialising(gray, stamp_ns)
-        timings = res.timings_ms
-        mv = self.multiview
-        baseline = None
-        if self._anchor_speed is not None and self._anchor_speed > 0 and mv.keyframes:
-            baseline = self._anchor_speed * (stamp_ns - mv.keyframes[0].stamp_ns) * 1e-9
-        t = time.perf_counter()
-        step = mv.step(self.frame_index, stamp_ns, tracks.ids, px, known_T,
-                       self._anchor_T_world_cam, baseline)
-        timings['bootstrap'] = (time.perf_counter() - t) * 1e3
-        res.message = step.message
-        if step.status != 'done':
-            if step.T_world_cam is not None and step.pose_cov is not None:
-                # a PnP pose of the collection phase: published with its own covariance,
-                # no velocity estimate yet (twist zero, with the prior's uncertainty)
-                c = self.cfg
-                res.ok = bool(np.all(np.isfinite(step.pose_cov)))
-                res.T_world_cam = step.T_world_cam
-                res.pose_cov = step.pose_cov + np.eye(6) * MIN_VARIANCE
-                res.twist_cam = np.zeros(6)
-                res.twist_cov = np.diag([c.init_velocity_sigma ** 2] * 3 +
-                                        [c.init_angular_velocity_sigma ** 2] * 3)
-            return res
-        kfs = step.keyframes
-        self._start_tracking(res, gray, tracks, px, step.point_ids, step.X_world,
-                             kfs[-2].T_world_cam, kfs[-1].T_world_cam,
-                             (kfs[-1].stamp_ns - kfs[-2].stamp_ns) * 1e-9,
-                             [(kf.frame_index, kf.ids, kf.px, kf.T_world_cam)
-                              for kf in kfs[:-1]])
-        res.message = step.message
-        return res
 
     # ------------------------------------------------------------------ tracking
     def _track(self, gray: np.ndarray, stamp_ns: int) -> FrameResult:
@@ -393,7 +266,7 @@ class VisualOdometry:
         timings['map'] = (time.perf_counter() - t) * 1e3
         res.ok = self._failed_frames == 0
         self._fill_output(res, tracks, has_point, inlier_mask)
-        if self.finder is not None:
+        if self.finder is not None and c.refind_map_points:
             t = time.perf_counter()
             found = self.finder.find_again(gray, tracks, self.map, self.ekf, self.camera,
                                            self.tracker, self.rng)
@@ -422,7 +295,7 @@ class VisualOdometry:
             self._failed_frames = 0
         if self._failed_frames >= c.max_failed_frames or pos_sigma > c.max_position_sigma_m:
             why = res.message or f'position sigma {pos_sigma:.2f} m'
-            self.reset(f'tracking lost ({why})')
+            self._lose(f'tracking lost ({why})')
             res.state, res.message = self.state, f'lost: {why}'
             res.health, res.health_reason = Health.LOST.value, why
             return True
@@ -587,6 +460,8 @@ class VisualOdometry:
 
     _prev_ids = np.zeros(0, np.int64)
     _published_cov = np.zeros((6, 6))
+    _reloc_failed_s = 0.0          #: textured frames' time spent relocalising in vain
+    _lost_velocity = (np.zeros(3), np.zeros(3))
  
     last_rotation_check = None     #: the last keyframe pair's rotation_check.RotationCheck
     _inflation = 1.0               #: the health checks' factor on the published covariance

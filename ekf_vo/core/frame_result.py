@@ -1,0 +1,49 @@
+"""What the pipeline says about one frame, and its tracking states (core/pipeline.py)."""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: smallest variance (m^2, rad^2) of a published pose: a zero covariance would read as
+#: infinite confidence to robot_localization (docs/ros.md)
+MIN_VARIANCE = 1e-9
+
+
+class TrackingState(enum.Enum):
+    INITIALISING = 'initialising'
+    TRACKING = 'tracking'
+    LOST = 'lost'
+
+
+@dataclass
+class FrameResult:
+    """What the pipeline says about one frame. Pose fields are None unless `ok`."""
+
+    stamp_ns: int
+    state: TrackingState
+    ok: bool = False                        #: a pose worth publishing
+    T_world_cam: np.ndarray | None = None   #: 4x4 camera optical frame -> world
+    pose_cov: np.ndarray | None = None      #: 6x6 (position, world rotation vector)
+    twist_cam: np.ndarray | None = None     #: (6,) v^C [m/s], w^C [rad/s], camera frame
+    twist_cov: np.ndarray | None = None     #: 6x6
+    n_tracks: int = 0
+    n_matches: int = 0                      #: tracks with a landmark used in the update
+    n_inliers: int = 0
+    n_new_points: int = 0
+    n_found_again: int = 0                  #: map points found again (tracks from now)
+    nis_per_dof: float = 0.0               #: normalised innovation squared / (2 n)
+    map_size: int = 0
+    bootstrapped: bool = False              #: this frame completed a (re-)bootstrap
+    #: online checks of a tracked frame (health.py): 'ok', 'degraded' or 'lost', and why
+    health: str = ''
+    health_reason: str = ''
+    variance_factor: float = 1.0            #: windowed NIS / dof
+    found_share: float = 1.0                #: inliers / map points the prior put in view
+    message: str = ''                       #: why not ok / what happened
+    timings_ms: dict = field(default_factory=dict)
+    track_ids: np.ndarray | None = None     #: (n,) for debug drawing
+    track_px: np.ndarray | None = None      #: (n,2) raw pixels
+    track_inlier: np.ndarray | None = None  #: (n,) bool, used as an inlier this frame
+    track_has_point: np.ndarray | None = None

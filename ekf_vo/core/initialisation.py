@@ -1,0 +1,178 @@
+"""The initialising state of the pipeline: the bootstrap that starts tracking.
+
+docs/method.md §2 and §3.6. A mixin of core.pipeline.VisualOdometry (it shares its state):
+the two-view bootstrap (a reference frame, then each new frame tried against it until one
+has enough parallax and inliers), the multi-view bootstrap (`bootstrap: multi_view`,
+multiview.py), and `_start_tracking`, which turns a bootstrap's map and poses into the
+filter's start, the first keyframes and the triangulation candidates.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import geometry as geo
+from .features import Tracks
+from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
+
+
+@dataclass
+class _Reference:
+    """The first frame of a bootstrap pair."""
+
+    stamp_ns: int
+    frame_index: int
+    ids: np.ndarray
+    px_ideal: np.ndarray
+    T_world_cam: np.ndarray | None  # known pose (ground-truth bootstrap) if given
+
+
+class Initialisation:
+    """The bootstrap methods of VisualOdometry (see the module docstring)."""
+
+    # ------------------------------------------------------------------ bootstrap
+    def _track_initialising(self, gray: np.ndarray, stamp_ns: int
+                            ) -> tuple[Tracks, np.ndarray, FrameResult]:
+        """Front end of a frame before tracking: tracks, their ideal pixels, a result."""
+        t = time.perf_counter()
+        tracks = self.tracker.track(gray)
+        timings = {'track': (time.perf_counter() - t) * 1e3}
+        px = self.camera.undistort(tracks.px)
+        res = FrameResult(stamp_ns, TrackingState.INITIALISING, n_tracks=len(tracks),
+                          timings_ms=timings, track_ids=tracks.ids, track_px=tracks.px)
+        return tracks, px, res
+
+    def _initialise(self, gray: np.ndarray, stamp_ns: int,
+                    known_T: np.ndarray | None) -> FrameResult:
+        tracks, px, res = self._track_initialising(gray, stamp_ns)
+        timings = res.timings_ms
+        ref = self._ref
+        too_old = ref is not None and self.frame_index - ref.frame_index > \
+            self.cfg.bootstrap_max_frames
+        n_common = 0 if ref is None else len(np.intersect1d(ref.ids, tracks.ids))
+        if ref is None or too_old or n_common < self.cfg.bootstrap_min_inliers:
+            if len(tracks) >= self.cfg.bootstrap_min_inliers:
+                self._ref = _Reference(stamp_ns, self.frame_index, tracks.ids.copy(),
+                                       px.copy(), known_T)
+                res.message = 'bootstrap: new reference frame'
+            else:
+                res.message = f'bootstrap: only {len(tracks)} features'
+            return res
+
+        t = time.perf_counter()
+        if ref.T_world_cam is not None and known_T is not None:
+            boot = self.bootstrapper.from_known_poses(
+                geo.invert_T(ref.T_world_cam), geo.invert_T(known_T),
+                ref.ids, ref.px_ideal, tracks.ids, px)
+            T_world_ref, T_world_cur = ref.T_world_cam, known_T
+            X_world = getattr(boot, 'X_world', None)
+        else:
+            baseline = None
+            if self._anchor_speed is not None and self._anchor_speed > 0:
+                # carry the scale over a re-bootstrap: distance = speed * elapsed time
+                baseline = self._anchor_speed * (stamp_ns - ref.stamp_ns) * 1e-9
+            boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
+                                              baseline=baseline)
+            if boot.ok:
+                T_world_ref = self._anchor_T_world_cam
+                T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
+                X_world = geo.transform_points(T_world_ref, boot.X_ref)
+        timings['bootstrap'] = (time.perf_counter() - t) * 1e3
+        if not boot.ok:
+            res.message = f'bootstrap refused: {boot.reason}'
+            return res
+
+        self._start_tracking(res, gray, tracks, px, boot.point_ids, X_world, T_world_ref,
+                             T_world_cur, (stamp_ns - ref.stamp_ns) * 1e-9,
+                             [(ref.frame_index, ref.ids, ref.px_ideal, T_world_ref)])
+        res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
+                       f'{boot.median_parallax_deg:.1f} deg')
+        return res
+
+    def _start_tracking(self, res: FrameResult, gray: np.ndarray, tracks: Tracks,
+                        px: np.ndarray, point_ids: np.ndarray, X_world: np.ndarray,
+                        T_world_prev: np.ndarray, T_world_cur: np.ndarray, dt: float,
+                        sources: list) -> None:
+        """Start tracking (docs/method.md §3.6) on the image `gray`: the map, the pose of
+        the current (last bootstrap) frame, velocities from the difference of the last two bootstrap
+        poses `dt` seconds apart. `sources`: earlier bootstrap frames (frame index, ids,
+        ideal px, T_world_cam), oldest first, from which tracks without a point become
+        triangulation candidates (wider baseline than from now)."""
+        anchor = self.world_cov.bootstrap_anchor(sources[0][3], T_world_cur, X_world)
+        self.map.add(point_ids, X_world, self.frame_index,
+                     cov=self.growth.two_view_covariances(X_world, sources[0][3], T_world_cur),
+                     anchor=anchor)
+        dt = max(dt, 1e-6)
+        v_world = (T_world_cur[:3, 3] - T_world_prev[:3, 3]) / dt
+        R_rel = T_world_prev[:3, :3].T @ T_world_cur[:3, :3]
+        w_cam = geo.quat_to_rotvec(geo.matrix_to_quat(R_rel)) / dt
+        c = self.cfg
+        self.ekf.initialise(T_world_cur, v_world, w_cam, c.init_pose_sigma,
+                            c.init_velocity_sigma, c.init_angular_velocity_sigma)
+        self._published_cov = self.ekf.pose_covariance() + anchor[0]
+        self._inflation = 1.0
+        self.world_cov.last = (self._published_cov, T_world_cur[:3, 3].copy())
+        self.state = TrackingState.TRACKING
+        self._failed_frames = 0
+        for f, _, _, T in sources:
+            self.growth.remember_pose(f, T)
+        self.growth.remember_pose(self.frame_index, T_world_cur)
+        rows = [{int(i): k for k, i in enumerate(ids)} for _, ids, _, _ in sources]
+        has_point = self.map.contains(tracks.ids)
+        for k in np.flatnonzero(~has_point):
+            tid = int(tracks.ids[k])
+            for (f, _, src_px, T), row in zip(sources, rows):
+                if tid in row:
+                    self.growth.add(tid, f, src_px[row[tid]], T)
+                    break
+            else:
+                self.growth.add(tid, self.frame_index, px[k], T_world_cur)
+        if self.local_map is not None:
+            for k, (f, ids, src_px, T) in enumerate(sources):
+                self.local_map.add_keyframe(f, T, ids, src_px, anchor if k else
+                                            self.world_cov.origin_anchor(T))
+            self.local_map.add_keyframe(self.frame_index, T_world_cur, tracks.ids, px,
+                                        anchor)
+        if self.finder is not None:
+            self.finder.describe(gray, tracks, self.map)
+        res.bootstrapped = True
+        res.health = 'ok'
+        self._fill_output(res, tracks, has_point, has_point)
+
+    def _initialise_multi_view(self, gray: np.ndarray, stamp_ns: int,
+                               known_T: np.ndarray | None) -> FrameResult:
+        """`bootstrap: multi_view` (multiview.py): keyframes, PnP, bundle adjustment.
+        Frames posed by PnP while the keyframes are collected are published."""
+        tracks, px, res = self._track_initialising(gray, stamp_ns)
+        timings = res.timings_ms
+        mv = self.multiview
+        baseline = None
+        if self._anchor_speed is not None and self._anchor_speed > 0 and mv.keyframes:
+            baseline = self._anchor_speed * (stamp_ns - mv.keyframes[0].stamp_ns) * 1e-9
+        t = time.perf_counter()
+        step = mv.step(self.frame_index, stamp_ns, tracks.ids, px, known_T,
+                       self._anchor_T_world_cam, baseline)
+        timings['bootstrap'] = (time.perf_counter() - t) * 1e3
+        res.message = step.message
+        if step.status != 'done':
+            if step.T_world_cam is not None and step.pose_cov is not None:
+                # a PnP pose of the collection phase: published with its own covariance,
+                # no velocity estimate yet (twist zero, with the prior's uncertainty)
+                c = self.cfg
+                res.ok = bool(np.all(np.isfinite(step.pose_cov)))
+                res.T_world_cam = step.T_world_cam
+                res.pose_cov = step.pose_cov + np.eye(6) * MIN_VARIANCE
+                res.twist_cam = np.zeros(6)
+                res.twist_cov = np.diag([c.init_velocity_sigma ** 2] * 3 +
+                                        [c.init_angular_velocity_sigma ** 2] * 3)
+            return res
+        kfs = step.keyframes
+        self._start_tracking(res, gray, tracks, px, step.point_ids, step.X_world,
+                             kfs[-2].T_world_cam, kfs[-1].T_world_cam,
+                             (kfs[-1].stamp_ns - kfs[-2].stamp_ns) * 1e-9,
+                             [(kf.frame_index, kf.ids, kf.px, kf.T_world_cam)
+                              for kf in kfs[:-1]])
+        res.message = step.message
+        return res
