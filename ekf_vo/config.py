@@ -332,7 +332,7 @@ class VoConfig(_Params):
         'matrix needs a baseline).', 'deg', 0.0, 90.0, group='quality')
     relocalise: bool = param(
         True, 'After a loss, keep the map and find the camera in it by ORB descriptors and '
-        'PnP (docs/method.md §15.7) before re-bootstrapping (needs local_map).',
+        'PnP (docs/method.md §15.6) before re-bootstrapping (needs local_map).',
         group='quality')
     relocalise_timeout_s: float = param(
         1.0, 'Re-bootstrap when relocalisation has failed on this much time of textured '

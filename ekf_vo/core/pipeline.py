@@ -10,7 +10,7 @@ docs/method.md §1 and §7, step by step, per frame:
                 points (1-point RANSAC) -> triangulate tracks with enough parallax between
                 their first observation and now, with the EKF poses -> output.
   LOST:         too many failed frames, a gap in the stream or a covariance blow-up: keep
-                the map and find the camera in it again (relocalise.py, §15.7); after
+                the map and find the camera in it again (relocalise.py, §15.6); after
                 relocalise_timeout_s drop the map and re-bootstrap, attaching the new map
                 to the last good pose (odom continuity) with the scale carried over from
                 the last velocity and the covariance from the last published pose.
@@ -70,7 +70,7 @@ class VisualOdometry(Initialisation):
             cfg.refind_map_points or cfg.relocalise) \
             else None
         self.rng = np.random.default_rng(seed)
-        # after a loss, the camera is found again in the kept map (§15.7); None = off
+        # after a loss, the camera is found again in the kept map (§15.6); None = off
         self.relocaliser = Relocaliser(cfg, camera) if cfg.local_map and cfg.relocalise \
             else None
         self.growth = MapGrowth(cfg, camera)        # triangulation candidates (§7.3)

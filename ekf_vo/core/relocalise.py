@@ -1,6 +1,6 @@
 """Relocalisation: after a loss, find the camera in the map it already has.
 
-docs/method.md §15.7. When tracking is lost (dark frames, a covered lens, blur, a gap in
+docs/method.md §15.6. When tracking is lost (dark frames, a covered lens, blur, a gap in
 the stream), the map is kept. Each new frame's Shi-Tomasi corners get ORB descriptors the
 way the keyframes gave them to the map points (refind.Describer: the same corners, the same
 descriptor, so a point is found where it was made); each is matched to the described map
