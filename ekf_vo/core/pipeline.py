@@ -142,6 +142,11 @@ class VisualOdometry(Initialisation):
         tracks = self.tracker.track(gray)
         res = FrameResult(stamp_ns, TrackingState.LOST, n_tracks=len(tracks),
                           health=Health.LOST.value, health_reason='relocalising')
+        dt = (stamp_ns - self._last_stamp_ns) * 1e-9 if self._last_stamp_ns else 0.0
+        if 0.0 < dt <= self.cfg.max_dt_s:
+            # the motion model goes on, unobserved: where a re-bootstrap would attach its
+            # map, with the uncertainty the time lost has added
+            self.estimator.predict(dt)
         found = self.relocaliser.attempt(gray, self.map)
         if found is None:
             # only frames with texture count: a covered lens may last, a map that is not
@@ -150,6 +155,8 @@ class VisualOdometry(Initialisation):
                 self._reloc_failed_s += (stamp_ns - self._last_stamp_ns) * 1e-9
             res.message = f'lost: relocalising ({self._reloc_failed_s:.1f} s in vain)'
             if self._reloc_failed_s > self.cfg.relocalise_timeout_s:
+                self._anchor_T_world_cam = self.ekf.T_world_cam
+                self.world_cov.carry(self.ekf.pose_covariance(), self.ekf.x[POS])
                 self.reset(f'not relocalised in {self._reloc_failed_s:.1f} s of images')
                 res.state = self.state
             return res
