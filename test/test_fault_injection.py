@@ -37,12 +37,18 @@ def demo():
     return info, frames
 
 
-def test_faults_then_good_frames(tmp_path, demo):
-    info, frames = demo
+def _start_vo_node(tmp_path) -> NodeProcess:
+    """vo_node on /cam/image + /cam/camera_info, reliable QoS, once ready."""
     vo = NodeProcess('ekf_vo.ros.vo_node', [
         '-r', 'image:=/cam/image', '-r', 'camera_info:=/cam/camera_info',
         '-r', 'odom:=/odom', '-p', 'reliable_qos:=true'], DOMAIN, tmp_path / 'vo.log')
     vo.wait_for_output('vo_node ready')
+    return vo
+
+
+def test_faults_then_good_frames(tmp_path, demo):
+    info, frames = demo
+    vo = _start_vo_node(tmp_path)
     h = Harness(DOMAIN)
     try:
         feed = Feeder(h, info)
@@ -168,11 +174,7 @@ def test_camera_info_after_its_image_and_bad_calibrations_mid_stream(tmp_path, d
                                                                False))
     offline.vo.local_map.close()
 
-    vo = NodeProcess('ekf_vo.ros.vo_node', [
-        '-r', 'image:=/cam/image', '-r', 'camera_info:=/cam/camera_info',
-        '-r', 'odom:=/odom', '-p', 'reliable_qos:=true'],
-        DOMAIN, tmp_path / 'vo.log')
-    vo.wait_for_output('vo_node ready')
+    vo = _start_vo_node(tmp_path)
     h = Harness(DOMAIN)
     try:
         feed = Feeder(h, info)

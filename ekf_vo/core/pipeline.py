@@ -107,12 +107,17 @@ class VisualOdometry(Initialisation):
     def reset(self, reason: str = 'requested') -> None:
         """Drop the map and re-bootstrap; keep the world frame at the last good pose."""
         if self.state == TrackingState.TRACKING:
-            self._anchor_T_world_cam = self.ekf.T_world_cam
-            self._anchor_speed = float(np.linalg.norm(self.ekf.x[VEL]))
-            self.world_cov.carry(self.ekf.pose_covariance(), self.ekf.x[POS])
+            self._keep_anchor()
         logger.info('VO reset: %s', reason)
         self.n_resets += 1
         self._reset_state()
+
+    def _keep_anchor(self) -> None:
+        """Where a later bootstrap attaches its map: the filter's pose now, its speed
+        (the scale) and its covariance (map_uncertainty.WorldCovariance.carry)."""
+        self._anchor_T_world_cam = self.ekf.T_world_cam
+        self._anchor_speed = float(np.linalg.norm(self.ekf.x[VEL]))
+        self.world_cov.carry(self.ekf.pose_covariance(), self.ekf.x[POS])
 
     def _lose(self, reason: str) -> None:
         """Tracking lost: keep the map and look for the camera in it (relocalise.py) for
@@ -122,10 +127,7 @@ class VisualOdometry(Initialisation):
             self.reset(reason)
             return
         logger.info('VO lost: %s; relocalising', reason)
-        # what a re-bootstrap needs if relocalisation fails (reset() saves it when tracking)
-        self._anchor_T_world_cam = self.ekf.T_world_cam
-        self._anchor_speed = float(np.linalg.norm(self.ekf.x[VEL]))
-        self.world_cov.carry(self.ekf.pose_covariance(), self.ekf.x[POS])
+        self._keep_anchor()      # what a re-bootstrap needs if relocalisation fails
         self._lost_velocity = (self.ekf.x[VEL].copy(), self.ekf.x[ANG].copy())
         self._reloc_failed_s = 0.0
         self.state = TrackingState.LOST
@@ -155,8 +157,7 @@ class VisualOdometry(Initialisation):
                 self._reloc_failed_s += (stamp_ns - self._last_stamp_ns) * 1e-9
             res.message = f'lost: relocalising ({self._reloc_failed_s:.1f} s in vain)'
             if self._reloc_failed_s > self.cfg.relocalise_timeout_s:
-                self._anchor_T_world_cam = self.ekf.T_world_cam
-                self.world_cov.carry(self.ekf.pose_covariance(), self.ekf.x[POS])
+                self._keep_anchor()  # the pose predicted through the time lost
                 self.reset(f'not relocalised in {self._reloc_failed_s:.1f} s of images')
                 res.state = self.state
             return res
