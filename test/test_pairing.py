@@ -55,6 +55,16 @@ def test_the_book_is_bounded():
     assert len(book) == 8 and book.pair(99).camera is CAM1
 
 
+def test_the_last_valid_calibration_outlives_a_run_of_invalid_ones():
+    book = CalibrationBook(keep=8)
+    book.add(0, CAM2)
+    for k in range(1, 100):
+        book.add(k, None)
+    assert book.pair(99).invalid
+    p = book.pair(150)
+    assert p.camera is CAM2 and not p.invalid
+
+
 # ---------------------------------------------------------------- ekf-vo-run on real bags
 def _write_bag(path, info, frames, order, bad_info_at=None):
     """A rosbag2 of the demo's frames: each CameraInfo 'before' or 'after' its image;

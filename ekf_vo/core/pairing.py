@@ -57,10 +57,15 @@ class CalibrationBook:
             self._stamps.insert(i, stamp_ns)
             self._cameras.insert(i, camera)
         if len(self._stamps) > self.keep:
-            # keep the newest valid one among what is dropped: it may still serve
             drop = len(self._stamps) - self.keep
+            dropped = [(t, c) for t, c in zip(self._stamps[:drop], self._cameras[:drop])
+                       if c is not None]
             del self._stamps[:drop]
             del self._cameras[:drop]
+            if dropped and all(c is None for c in self._cameras):
+                # the last valid calibration stays, however many invalid ones came since
+                self._stamps.insert(0, dropped[-1][0])
+                self._cameras.insert(0, dropped[-1][1])
 
     def pair(self, stamp_ns: int) -> Pairing:
         """The calibration of an image stamped `stamp_ns`."""
