@@ -255,6 +255,39 @@ class VoConfig(_Params):
         '(honest for the papers\' exact-map experiments, far too small on real data).',
         group='consistency')
 
+    # ---- metric scale (ekf_vo/core/metric_scale.py, docs/method.md §16) ----
+    scale_source: str = param(
+        'none', 'none: odometry in map units (the bootstrap baseline is one unit, or '
+        'bootstrap_baseline_m); camera_height: metres from the camera\'s height above '
+        'the ground plane fitted to the map (camera_height_m); odometry: metres from an '
+        'external odometry\'s travelled distance (vo_node topic scale_odom, '
+        'nav_msgs/Odometry; ekf-vo-run --scale-odom-topic).',
+        choices=('none', 'camera_height', 'odometry'), group='scale')
+    camera_height_m: float = param(
+        0.0, 'camera_height: the camera centre\'s height above the ground (KITTI: 1.65); '
+        'required (> 0) with that source.', 'm', 0.0, 1000.0, group='scale')
+    camera_height_sigma_m: float = param(
+        0.05, 'camera_height: uncertainty of camera_height_m (mounting, load, '
+        'suspension); a bias no averaging removes, kept in the published covariance.',
+        'm', 0.0, 100.0, group='scale')
+    ground_max_tilt_deg: float = param(
+        15.0, 'camera_height: largest angle between the fitted ground plane\'s normal and '
+        'gravity (from the base extrinsic T_base_cam_xyzw).', 'deg', 0.5, 60.0,
+        group='scale')
+    scale_drift_per_sqrt_m: float = param(
+        0.01, 'Growth of the scale\'s log-uncertainty with the distance travelled '
+        '(monocular scale drift): its variance grows by this squared per metre.',
+        '1/sqrt(m)', 0.0, 10.0, group='scale')
+    scale_odom_window_s: float = param(
+        2.0, 'odometry: one scale measurement per window of this length (the median of '
+        'its sub-segments\' distance ratios).', 's', 0.1, 600.0, group='scale')
+    scale_odom_min_distance_m: float = param(
+        0.3, 'odometry: a window counts only when the odometry travelled this far in it '
+        '(no scale while standing still).', 'm', 0.0, 1000.0, group='scale')
+    scale_odom_sigma: float = param(
+        0.03, 'odometry: relative error of the odometry\'s distance over one window.', '',
+        0.0, 10.0, group='scale')
+
     # ---- measurement noise (ekf_vo/core/noise_model.py) ----
     measurement_noise: str = param(
         'fixed', 'fixed: every map point has pixel_sigma_px; adaptive: each landmark\'s '
@@ -357,6 +390,9 @@ class VoConfig(_Params):
                 f'{self.filter_max_points}/{self.filter_retire_count}')
         if self.filter_max_observations <= self.filter_min_observations:
             raise ConfigError('filter_max_observations must exceed filter_min_observations')
+        if self.scale_source == 'camera_height' and not self.camera_height_m > 0:
+            raise ConfigError('scale_source camera_height needs camera_height_m > 0 (the '
+                              'camera centre\'s height above the ground, metres)')
         return self
 
 

@@ -84,6 +84,7 @@ def test_sim3_noisy_matches_independent_umeyama() -> None:
     assert r.n_matched == 100 and r.pct_tracked == pytest.approx(100.0)
     # Estimate is 0.37 x true size, so the scale evo applies to it is ~1/0.37.
     assert r.sim3_scale == pytest.approx(1.0 / s0, rel=5e-3)
+    assert r.scale_error_pct == pytest.approx(100.0 * (s0 - 1.0), rel=5e-3)  # ~ -63 %
     # ATE at the noise level: E|n| ~ sigma*sqrt(3) minus the 7 fitted DOF.
     assert 0.5 * sigma * np.sqrt(3) < r.ate_sim3_rmse < 1.5 * sigma * np.sqrt(3)
     assert r.ate_se3_rmse > 10 * r.ate_sim3_rmse  # no scale correction -> large error
@@ -190,7 +191,8 @@ def test_cli_json_and_plot(tmp_path: Path) -> None:
     for key in ('ate_sim3_rmse', 'ate_sim3_mean', 'ate_sim3_median', 'ate_sim3_max',
                 'ate_se3_rmse', 'sim3_scale', 'rpe_trans_rmse', 'rpe_rot_rmse_deg',
                 'rot_err_mean_deg', 'rot_err_max_deg', 'path_length_gt_m',
-                'ate_sim3_pct_of_path', 'n_gt', 'n_est', 'n_matched', 'pct_tracked'):
+                'ate_sim3_pct_of_path', 'ate_se3_pct_of_path', 'scale_error_pct',
+                'n_gt', 'n_est', 'n_matched', 'pct_tracked'):
         assert key in d
     assert d['n_matched'] == 50 and d['pct_tracked'] == pytest.approx(100.0)
     assert d['ate_sim3_rmse'] < 1e-6

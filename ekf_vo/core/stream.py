@@ -29,6 +29,7 @@ import numpy as np
 
 from ..config import VoConfig
 from .camera import PinholeCamera
+from .metric_scale import MetricScale, ScaleStatus
 from .pairing import CalibrationBook, Pairing
 from .pipeline import FrameResult, TrackingState, VisualOdometry
 
@@ -55,9 +56,16 @@ class VoStream:
     until a calibration arrived), counters (collections.Counter of rejections and
     events), n_camera_changes, n_resets (over every estimator this stream ran)."""
 
-    def __init__(self, cfg: VoConfig, seed: int = 0) -> None:
+    def __init__(self, cfg: VoConfig, seed: int = 0,
+                 T_base_cam: np.ndarray | None = None) -> None:
+        """`T_base_cam`: the camera's pose on the robot (4x4, metres: vo_node's
+        T_base_cam_xyz / _xyzw); gives the metric scale its gravity direction and lever
+        arm (metric_scale.py); None: those parameters' defaults."""
         self.cfg = cfg.validate()
         self.seed = int(seed)
+        self._T_base_cam = T_base_cam
+        #: the map's metric scale (scale_source); converts results to metres
+        self.scale = MetricScale(self.cfg, T_base_cam)
         self.camera: PinholeCamera | None = None
         self.vo: VisualOdometry | None = None
         self.counters: collections.Counter = collections.Counter()
@@ -128,6 +136,7 @@ class VoStream:
         """New estimator parameters: the estimator restarts with them."""
         with self._lock:
             self.cfg = cfg.validate()
+            self.scale = MetricScale(self.cfg, self._T_base_cam)
             if self.camera is not None:
                 self._replace_estimator(VisualOdometry(self.cfg, self.camera,
                                                        seed=self.seed))
@@ -196,7 +205,26 @@ class VoStream:
             self._last_processed_ns = stamp_ns
         # the estimator runs outside the lock: calibration, stamps and reset requests keep
         # coming in; a calibration change replaces the estimator for the next frame
-        return vo.process(gray, stamp_ns, known_T_world_cam)
+        result = vo.process(gray, stamp_ns, known_T_world_cam)
+        with self._lock:
+            if vo is self.vo:
+                self.scale.apply(result, vo.map.X_world, vo.map.n_obs)
+        return result
+
+    def add_scale_odometry(self, stamp_ns: int, xyz: np.ndarray) -> None:
+        """An external odometry's position (metres, its own frame) at `stamp_ns`, for
+        scale_source odometry (metric_scale.py). Non-finite positions are ignored."""
+        xyz = np.asarray(xyz, float)
+        if xyz.shape == (3,) and np.all(np.isfinite(xyz)):
+            with self._lock:
+                self.scale.add_odometry(int(stamp_ns), xyz)
+
+    def scale_status(self) -> ScaleStatus:
+        return self.scale.status()
+
+    def map_points(self, X_world: np.ndarray) -> np.ndarray:
+        """Map points in the frame of the published poses (metres with a scale source)."""
+        return self.scale.points(X_world) if self.scale.active else X_world
 
     # ------------------------------------------------------------------ state
     @property
@@ -228,6 +256,7 @@ class VoStream:
             if self.vo.local_map is not None:
                 self.vo.local_map.close(wait=False)
         self.vo = vo
+        self.scale.reset()                      # a new world: its scale is unknown
         self._pending_reset = None
         self._last_processed_ns = None          # a new estimator has no past
 

@@ -217,6 +217,15 @@ class BagWriter:
         msg = camera_info_msg(width, height, K, D, distortion_model, stamp_ns, frame_id)
         self.write(topic, CAMERA_INFO, msg, stamp_ns)
 
+    def add_odometry(self, topic: str, T_odom_base: np.ndarray, stamp_ns: int, frame_id: str,
+                     child_frame_id: str, position_sigma_m: float = 0.01) -> None:
+        """nav_msgs/Odometry of a pose only (twist zero, its covariance large)."""
+        from ..bridge.odometry import pose_to_odometry
+        cov = np.eye(6) * position_sigma_m ** 2
+        msg = pose_to_odometry(T_odom_base, cov, np.zeros(3), np.zeros(3), np.eye(6) * 1e3,
+                               stamp_ns, frame_id, child_frame_id, typestore())
+        self.write(topic, 'nav_msgs/msg/Odometry', msg, stamp_ns)
+
     def add_pose(self, topic: str, T_world_cam: np.ndarray, stamp_ns: int, frame_id: str) -> None:
         """geometry_msgs/PoseStamped of ``T_world_cam``; ``frame_id`` is the world frame."""
         msg = pose_stamped_msg(T_world_cam, stamp_ns, frame_id)

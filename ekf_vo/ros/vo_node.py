@@ -1,7 +1,8 @@
 """vo_node: the ROS 2 edge around the estimation core (ekf_vo.core.pipeline).
 
 Subscribes  image (sensor_msgs/Image) or image/compressed (sensor_msgs/CompressedImage),
-            camera_info (sensor_msgs/CameraInfo); sensor-data QoS unless reliable_qos.
+            camera_info (sensor_msgs/CameraInfo); sensor-data QoS unless reliable_qos;
+            scale_odom (nav_msgs/Odometry, e.g. wheel odometry) with scale_source odometry.
 Publishes   odom (nav_msgs/Odometry, reliable), landmarks (PointCloud2 updates for
             map_node), ~/path (nav_msgs/Path), ~/status (diagnostic_msgs/DiagnosticArray),
             ~/debug_image (sensor_msgs/Image, only computed while subscribed).
@@ -42,6 +43,10 @@ from .params import declare_from_dataclass, install_validation, warn_unknown_par
 
 #: each kind of rejected input is logged at most this often (and always counted)
 WARN_PERIOD_S = 5.0
+#: the whole map is re-sent once the metric scale moved by this fraction, or its offset
+#: by OFFSET_REPUBLISH_M, since it was last sent (metric_scale.py)
+SCALE_REPUBLISH_REL = 0.002
+OFFSET_REPUBLISH_M = 0.05
 
 
 class VoNode(Node):
@@ -62,7 +67,8 @@ class VoNode(Node):
         self._queue_cv = threading.Condition()
         self._stop = threading.Event()
         #: the core's front door: calibration changes, stamp checks, resets (stream.py)
-        self.stream = VoStream(self.core_cfg)
+        self.stream = VoStream(self.core_cfg, T_base_cam=self.T_base_cam)
+        self._published_scale = (1.0, np.zeros(3))   # the map's (scale, offset) last sent
         self._map_restarted = False            # a new estimator: clear map_node's map
         self._published_ids: set[int] = set()
         self._landmark_subscribers = 0
@@ -90,6 +96,9 @@ class VoNode(Node):
                                      sub_qos)
         else:
             self.create_subscription(Image, self.image_topic, self._on_image, sub_qos)
+        if self.core_cfg.scale_source == 'odometry':
+            self.create_subscription(Odometry, 'scale_odom', self._on_scale_odom,
+                                     QoSProfile(depth=50))
         self._last_image_time = time.monotonic()
         self._last_state: str | None = None          # logged state, see _log_state_change
         self.create_timer(WARN_PERIOD_S, self._check_inputs)
@@ -171,6 +180,16 @@ class VoNode(Node):
             self._warn('bad_camera_info', f'CameraInfo rejected: {exc}')
         with self._queue_cv:
             self._queue_cv.notify_all()      # a frame may be waiting for this stamp
+
+    def _on_scale_odom(self, msg: Odometry) -> None:
+        """An external odometry for the metric scale: only its position is used."""
+        try:
+            stamp_ns = conv.stamp_to_ns(msg.header.stamp)
+            T = conv.odometry_to_pose(msg)[0]
+        except conv.ConversionError as exc:
+            self._warn('bad_scale_odom', f'scale_odom ignored: {exc}')
+            return
+        self.stream.add_scale_odometry(stamp_ns, T[:3, 3])
 
     def _on_image(self, msg: Image) -> None:
         self._enqueue(msg, conv.IMAGE, 'image')
@@ -343,7 +362,14 @@ class VoNode(Node):
     def _publish_landmarks(self, vo: VisualOdometry, stamp_ns: int) -> None:
         changes = vo.map.pop_changes()
         n_subs = self.landmark_pub.get_subscription_count()
-        if n_subs > self._landmark_subscribers:
+        scale = (self.stream.scale.scale, self.stream.scale.offset.copy())
+        old_scale, old_offset = self._published_scale
+        moved = abs(scale[0] / old_scale - 1.0) > SCALE_REPUBLISH_REL or \
+            np.linalg.norm(scale[1] - old_offset) > OFFSET_REPUBLISH_M
+        if n_subs > self._landmark_subscribers or moved:
+            # a map_node joined (or restarted), or the metric scale moved the map: send
+            # the whole map, not just the changes
+            self._published_scale = scale
             # a map_node joined (or restarted): send it the whole map, not just changes
             changes.ids, changes.X_world = vo.map.ids.copy(), vo.map.X_world.copy()
             changes.n_obs = vo.map.n_obs.copy()
@@ -351,8 +377,8 @@ class VoNode(Node):
         removed = [int(i) for i in changes.removed_ids if int(i) in self._published_ids]
         if len(changes.ids) == 0 and not removed:
             return
-        X = points_to_odom(changes.X_world, self.T_base_cam) if len(changes.ids) else \
-            np.zeros((0, 3))
+        X = points_to_odom(self.stream.map_points(changes.X_world), self.T_base_cam) \
+            if len(changes.ids) else np.zeros((0, 3))
         xyz = np.vstack((X, np.full((len(removed), 3), np.nan)))
         ids = np.concatenate((changes.ids, np.array(removed, np.int64))).astype(np.uint32)
         n_obs = np.concatenate((changes.n_obs, np.zeros(len(removed), np.int32)))
@@ -412,6 +438,7 @@ class VoNode(Node):
                 'map_points': r.map_size if r else 0,
                 'resets': self.stream.n_resets}
         vals.update(self.stream.local_map_stats())
+        vals.update(self.stream.scale_status().as_status())
         vals.update(self.counters)
         return vals
 

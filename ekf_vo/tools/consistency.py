@@ -10,6 +10,14 @@ is compared with the rotation block of its published covariance:
 
 An honest covariance gives a mean of 3 (median 2.37), and 0.1 % of the frames above the
 chi-square(3) 99.9 % bound, 16.27. Poses and covariances are associated by stamp.
+
+For a metric estimate (ekf-vo-eval --se3 --cov), :func:`pose_nees` checks the whole 6x6:
+rigid alignment at the same first frame, T_align = T_gt,0 T_est,0^-1 (no scale), and
+
+    e_k = (p_gt,k - p_est_aligned,k, log(R_gt,k R_est_aligned,k^T))       [m, rad]
+    NEES_k = e_k^T (A Sigma_k A^T)^-1 e_k,  A = diag(R_align, R_align)      (6 dof)
+
+mean 6 when honest, 0.1 % of the frames above the chi-square(6) 99.9 % bound, 22.46.
 """
 from __future__ import annotations
 
@@ -22,6 +30,11 @@ from ..core import geometry as geo
 
 #: chi-square(3) 99.9 % quantile
 CHI2_3DOF_999 = 16.266
+#: chi-square(6) 99.9 % quantile
+CHI2_6DOF_999 = 22.458
+#: a covariance is skipped by :func:`pose_nees` when the smallest eigenvalue of its
+#: correlation matrix is below this (singular / not positive definite), or it is non-finite
+MIN_CORR_EIG = 1e-12
 
 
 @dataclass
@@ -53,31 +66,107 @@ def _associate(a: np.ndarray, b: np.ndarray, max_dt: float) -> tuple[np.ndarray,
     return best[ok], np.flatnonzero(ok)
 
 
-def rotation_nees(gt_stamps: np.ndarray, gt_T: np.ndarray, est_stamps: np.ndarray,
-                  est_T: np.ndarray, cov_stamps: np.ndarray, cov: np.ndarray,
-                  max_time_diff_s: float = 0.01) -> RotationNees:
-    """Rotation NEES of the estimate (T_world_cam (n,4,4), covariances (m,6,6) with their
-    stamps) against the ground truth. Raises ValueError when nothing associates."""
+def _matched(gt_stamps: np.ndarray, gt_T: np.ndarray, est_stamps: np.ndarray,
+             est_T: np.ndarray, cov_stamps: np.ndarray, cov: np.ndarray,
+             max_time_diff_s: float) -> tuple[np.ndarray, ...]:
+    """(stamps, gt_T, est_T, cov) of the estimated poses that have a covariance (same stamp)
+    and a ground-truth pose within max_time_diff_s. Raises ValueError when none does."""
     i_cov, j_est = _associate(np.asarray(cov_stamps, float), np.asarray(est_stamps, float),
                               1e-6)
     est_s, est_T, cov = est_stamps[j_est], est_T[j_est], cov[i_cov]
     i_gt, j = _associate(np.asarray(gt_stamps, float), est_s, max_time_diff_s)
     if len(j) == 0:
         raise ValueError('no estimated pose with a covariance matches the ground truth')
-    R_gt = gt_T[i_gt, :3, :3]
-    R_est = est_T[j, :3, :3]
+    return est_s[j], gt_T[i_gt], est_T[j], cov[j]
+
+
+def _rot_err(R_gt: np.ndarray, R_est_aligned: np.ndarray) -> np.ndarray:
+    """World-frame rotation vector [rad] of R_gt R_est_aligned^T."""
+    return geo.quat_to_rotvec(geo.matrix_to_quat(R_gt @ R_est_aligned.T))
+
+
+def rotation_nees(gt_stamps: np.ndarray, gt_T: np.ndarray, est_stamps: np.ndarray,
+                  est_T: np.ndarray, cov_stamps: np.ndarray, cov: np.ndarray,
+                  max_time_diff_s: float = 0.01) -> RotationNees:
+    """Rotation NEES of the estimate (T_world_cam (n,4,4), covariances (m,6,6) with their
+    stamps) against the ground truth. Raises ValueError when nothing associates."""
+    stamps, gt_T, est_T, cov = _matched(gt_stamps, gt_T, est_stamps, est_T, cov_stamps,
+                                        cov, max_time_diff_s)
+    R_gt = gt_T[:, :3, :3]
+    R_est = est_T[:, :3, :3]
     R_align = R_gt[0] @ R_est[0].T
     nees, err, sig3 = [], [], []
-    for Rg, Re, C in zip(R_gt, R_est, cov[j]):
-        e = geo.quat_to_rotvec(geo.matrix_to_quat(Rg @ (R_align @ Re).T))
+    for Rg, Re, C in zip(R_gt, R_est, cov):
+        e = _rot_err(Rg, R_align @ Re)
         S = R_align @ C[3:, 3:] @ R_align.T
         nees.append(float(e @ np.linalg.solve(S, e)))
         err.append(np.degrees(np.linalg.norm(e)))
         sig3.append(3 * np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(S)))))
     nees = np.array(nees)
     return RotationNees(float(np.mean(nees)), float(np.median(nees)),
-                        float(100 * np.mean(nees > CHI2_3DOF_999)), len(nees), est_s[j],
+                        float(100 * np.mean(nees > CHI2_3DOF_999)), len(nees), stamps,
                         nees, np.array(err), np.array(sig3))
+
+
+@dataclass
+class PoseNees:
+    """6-DoF pose NEES (position [m] + world rotation vector [rad]) per usable frame."""
+
+    mean: float
+    median: float
+    pct_above_999: float          #: % of the usable frames above CHI2_6DOF_999
+    n_frames: int                 #: usable frames (the NEES statistics are over these)
+    n_skipped: int                #: matched frames skipped: non-finite or singular covariance
+    times_s: np.ndarray = field(repr=False)      #: (n_frames,) stamps
+    nees: np.ndarray = field(repr=False)         #: (n_frames,)
+
+    def to_dict(self) -> dict:
+        return {'pose_nees_mean': self.mean, 'pose_nees_median': self.median,
+                'pose_nees_pct_above_99_9': self.pct_above_999,
+                'pose_nees_frames': self.n_frames, 'pose_nees_skipped': self.n_skipped}
+
+
+def _usable(S: np.ndarray) -> bool:
+    """True if the covariance is finite and numerically positive definite (its correlation
+    matrix's smallest eigenvalue > MIN_CORR_EIG): unit-free, so metres and radians mix."""
+    if not np.all(np.isfinite(S)):
+        return False
+    d = np.diag(S)
+    if np.any(d <= 0):
+        return False
+    corr = S / np.sqrt(np.outer(d, d))
+    return bool(np.min(np.linalg.eigvalsh(0.5 * (corr + corr.T))) > MIN_CORR_EIG)
+
+
+def pose_nees(gt_stamps: np.ndarray, gt_T: np.ndarray, est_stamps: np.ndarray,
+              est_T: np.ndarray, cov_stamps: np.ndarray, cov: np.ndarray,
+              max_time_diff_s: float = 0.01) -> PoseNees:
+    """6-DoF pose NEES of a metric estimate (T_world_cam (n,4,4); covariances (m,6,6) over
+    position and world rotation vector, with their stamps) against the ground truth, after a
+    rigid alignment at the first matched pose (no scale). Frames whose covariance is
+    non-finite or singular (see :func:`_usable`) are skipped and counted. Raises ValueError
+    when nothing associates or no frame has a usable covariance."""
+    stamps, gt_T, est_T, cov = _matched(gt_stamps, gt_T, est_stamps, est_T, cov_stamps,
+                                        cov, max_time_diff_s)
+    T_align = gt_T[0] @ geo.invert_T(est_T[0])
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = T_align[:3, :3]
+    nees, keep = [], []
+    for k, (Tg, Te, C) in enumerate(zip(gt_T, est_T, cov)):
+        S = A @ C @ A.T
+        if not _usable(S):
+            continue
+        Ta = T_align @ Te
+        e = np.concatenate([Tg[:3, 3] - Ta[:3, 3], _rot_err(Tg[:3, :3], Ta[:3, :3])])
+        nees.append(float(e @ np.linalg.solve(S, e)))
+        keep.append(k)
+    if not nees:
+        raise ValueError(f'pose NEES: none of the {len(cov)} matched covariances is finite '
+                         'and positive definite')
+    nees = np.array(nees)
+    return PoseNees(float(np.mean(nees)), float(np.median(nees)),
+                    float(100 * np.mean(nees > CHI2_6DOF_999)), len(nees),
+                    len(cov) - len(nees), stamps[keep], nees)
 
 
 def plot_rotation_nees(r: RotationNees, out_png: str | Path, title: str = '') -> Path:

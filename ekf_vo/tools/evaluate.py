@@ -14,7 +14,9 @@ Frames: all poses are ``T_world_cam`` (camera optical frame -> world).  The esti
 frame (and, for monocular VO, its scale) is arbitrary; the alignment maps it onto the
 ground-truth world frame: ``p_gt ~= s * R @ p_est + t``.
 
-Console script ``ekf-vo-eval GT EST [--json] [--plot FILE.png] [--max-diff 0.01] [--frames N]``.
+Console script ``ekf-vo-eval GT EST [--json] [--plot FILE.png] [--max-diff 0.01] [--frames N]
+[--se3] [--cov EST.cov]``; ``--se3`` is for a metric estimate: the SE(3) figures (no scale
+fitted) head the output, and with ``--cov`` the 6-DoF pose NEES is reported too.
 """
 from __future__ import annotations
 
@@ -58,9 +60,13 @@ class EvalResult:
         ate_sim3_median: ATE translation median [m] (Sim(3)).
         ate_sim3_max: ATE translation max [m] (Sim(3)).
         ate_se3_rmse: ATE translation RMSE [m] after rigid SE(3) alignment (no scale
-            correction; large for monocular VO whose scale is arbitrary).
+            correction; large for monocular VO whose scale is arbitrary): the metric accuracy
+            of an estimate that claims metres.
+        ate_se3_pct_of_path: ``100 * ate_se3_rmse / path_length_gt_m`` [%].
         sim3_scale: Umeyama scale ``s`` applied to the estimate, ``p_gt ~= s R p_est + t``.
             If the estimate is ``k`` times the true size, ``sim3_scale ~= 1/k``.
+        scale_error_pct: how far the estimate's size is from the truth,
+            ``100 * (1 / sim3_scale - 1)`` [%]: positive = estimate too large (``k > 1``).
         rpe_trans_rmse: RPE translation RMSE [m] between consecutive *associated* poses
             (evo RPE, delta = 1, ``Unit.frames``), computed on the Sim(3)-aligned estimate,
             so it is in ground-truth metres.  If poses are missing, a "frame" pair spans the gap.
@@ -89,6 +95,7 @@ class EvalResult:
         rot_err_deg: (M,) per-pose orientation error [deg] (Sim(3)).
         gt_xyz: (M, 3) associated ground-truth positions (world).
         est_xyz_aligned: (M, 3) associated estimate positions after Sim(3) alignment.
+        est_xyz_aligned_se3: (M, 3) associated estimate positions after SE(3) alignment.
         gt_xyz_full: (N_gt, 3) all ground-truth positions, time-sorted (for plotting).
     """
 
@@ -97,7 +104,9 @@ class EvalResult:
     ate_sim3_median: float
     ate_sim3_max: float
     ate_se3_rmse: float
+    ate_se3_pct_of_path: float
     sim3_scale: float
+    scale_error_pct: float
     rpe_trans_rmse: float
     rpe_rot_rmse_deg: float
     rot_err_mean_deg: float
@@ -118,6 +127,7 @@ class EvalResult:
     rot_err_deg: np.ndarray = field(repr=False)
     gt_xyz: np.ndarray = field(repr=False)
     est_xyz_aligned: np.ndarray = field(repr=False)
+    est_xyz_aligned_se3: np.ndarray = field(repr=False)
     gt_xyz_full: np.ndarray = field(repr=False)
 
     def to_dict(self, include_arrays: bool = False) -> dict[str, Any]:
@@ -198,7 +208,7 @@ def evaluate(gt_stamps: np.ndarray, gt_T: np.ndarray,
     gt_span = copy.deepcopy(traj_gt)
     gt_span.reduce_to_ids(in_span)
     path_len = float(gt_span.path_length)
-    ate_rmse = stats['ate_sim3_rmse']
+    pct = 100.0 / path_len if path_len > 0 else math.nan     # [% of path per metre]
 
     T_align = np.eye(4)
     T_align[:3, :3] = s_a * r_a
@@ -211,9 +221,11 @@ def evaluate(gt_stamps: np.ndarray, gt_T: np.ndarray,
     result = EvalResult(
         **stats,
         sim3_scale=float(s_a),
+        scale_error_pct=100.0 * (1.0 / float(s_a) - 1.0),
         path_length_gt_m=path_len,
         path_length_gt_total_m=float(traj_gt.path_length),
-        ate_sim3_pct_of_path=100.0 * ate_rmse / path_len if path_len > 0 else math.nan,
+        ate_sim3_pct_of_path=pct * stats['ate_sim3_rmse'],
+        ate_se3_pct_of_path=pct * stats['ate_se3_rmse'],
         n_gt=int(n_gt),
         n_est=int(n_est),
         n_matched=int(n_matched),
@@ -223,6 +235,7 @@ def evaluate(gt_stamps: np.ndarray, gt_T: np.ndarray,
         times_s=np.asarray(est_sync.timestamps, dtype=np.float64).copy(),
         gt_xyz=np.asarray(gt_sync.positions_xyz, dtype=np.float64).copy(),
         est_xyz_aligned=np.asarray(est_sim3.positions_xyz, dtype=np.float64).copy(),
+        est_xyz_aligned_se3=np.asarray(est_se3.positions_xyz, dtype=np.float64).copy(),
         gt_xyz_full=np.asarray(traj_gt.positions_xyz, dtype=np.float64).copy(),
     )
     logger.info('ATE Sim(3) RMSE %.4f m (%.2f %% of %.2f m), scale %.4f, %d matched',
@@ -322,10 +335,12 @@ def format_table(r: EvalResult) -> str:
     rows = [
         ('ATE Sim(3) RMSE', f'{r.ate_sim3_rmse:.4f} m  ({r.ate_sim3_pct_of_path:.2f} % of '
                             f'{r.path_length_gt_m:.2f} m path)'),
+        ('ATE SE(3) RMSE (no scale fitted)',
+         f'{r.ate_se3_rmse:.4f} m  ({r.ate_se3_pct_of_path:.2f} % of path)'),
         ('ATE Sim(3) mean / median / max',
          f'{r.ate_sim3_mean:.4f} / {r.ate_sim3_median:.4f} / {r.ate_sim3_max:.4f} m'),
-        ('ATE SE(3) RMSE', f'{r.ate_se3_rmse:.4f} m'),
         ('Sim(3) scale (gt/est)', f'{r.sim3_scale:.4f}'),
+        ('Scale error (est too large if +)', f'{r.scale_error_pct:+.2f} %'),
         ('RPE trans RMSE (1 frame)', f'{r.rpe_trans_rmse:.4f} m'),
         ('RPE rot RMSE (1 frame)', f'{r.rpe_rot_rmse_deg:.3f} deg'),
         ('Rotation error mean / max', f'{r.rot_err_mean_deg:.3f} / {r.rot_err_max_deg:.3f} deg'),
@@ -338,7 +353,7 @@ def format_table(r: EvalResult) -> str:
     return '\n'.join(f'{k:<{width}}  {v}' for k, v in rows)
 
 
-def plot_result(r: EvalResult, out_png: str | Path, title: str = '') -> Path:
+def plot_result(r: EvalResult, out_png: str | Path, title: str = '', se3: bool = False) -> Path:
     """Write a two-panel PNG: top view of GT and aligned estimate, translation error vs time.
 
     The top view uses the two world axes with the largest ground-truth extent.
@@ -347,6 +362,8 @@ def plot_result(r: EvalResult, out_png: str | Path, title: str = '') -> Path:
         r: evaluation result.
         out_png: output image path (parent directories are created).
         title: optional figure title.
+        se3: show the SE(3)-aligned estimate and its error (metric estimate, no scale
+            fitted) instead of the Sim(3)-aligned one.
 
     Returns:
         The written path.
@@ -360,14 +377,22 @@ def plot_result(r: EvalResult, out_png: str | Path, title: str = '') -> Path:
     extent = np.ptp(r.gt_xyz_full, axis=0)
     a, b = sorted(np.argsort(extent)[::-1][:2].tolist())
     names = 'xyz'
+    if se3:
+        est = r.est_xyz_aligned_se3
+        err = np.linalg.norm(est - r.gt_xyz, axis=1)
+        kind, rmse, pct = 'SE(3)', r.ate_se3_rmse, r.ate_se3_pct_of_path
+        label = f'estimate (SE(3) aligned, scale error {r.scale_error_pct:+.1f} %)'
+    else:
+        est, err = r.est_xyz_aligned, r.trans_err_m
+        kind, rmse, pct = 'Sim(3)', r.ate_sim3_rmse, r.ate_sim3_pct_of_path
+        label = f'estimate (Sim(3) aligned, s={r.sim3_scale:.3f})'
 
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 5))
     ax0.plot(r.gt_xyz_full[:, a], r.gt_xyz_full[:, b], '-', color='0.3', lw=1.5,
              label='ground truth')
-    ax0.plot(r.est_xyz_aligned[:, a], r.est_xyz_aligned[:, b], '-', color='tab:blue', lw=1.0,
-             label=f'estimate (Sim(3) aligned, s={r.sim3_scale:.3f})')
+    ax0.plot(est[:, a], est[:, b], '-', color='tab:blue', lw=1.0, label=label)
     ax0.plot(r.gt_xyz_full[0, a], r.gt_xyz_full[0, b], 'o', color='0.3', ms=5)
-    ax0.plot(r.est_xyz_aligned[0, a], r.est_xyz_aligned[0, b], 'o', color='tab:blue', ms=4)
+    ax0.plot(est[0, a], est[0, b], 'o', color='tab:blue', ms=4)
     ax0.set_xlabel(f'{names[a]} [m]')
     ax0.set_ylabel(f'{names[b]} [m]')
     ax0.set_aspect('equal', adjustable='datalim')
@@ -376,15 +401,14 @@ def plot_result(r: EvalResult, out_png: str | Path, title: str = '') -> Path:
     ax0.set_title(f'Top view ({names[a]}-{names[b]})')
 
     t = r.times_s - r.times_s[0]
-    ax1.plot(t, r.trans_err_m, '-', color='tab:red', lw=1.0, label='translation error')
-    ax1.axhline(r.ate_sim3_rmse, color='k', ls='--', lw=0.8,
-                label=f'RMSE {r.ate_sim3_rmse:.4f} m')
+    ax1.plot(t, err, '-', color='tab:red', lw=1.0, label='translation error')
+    ax1.axhline(rmse, color='k', ls='--', lw=0.8, label=f'RMSE {rmse:.4f} m')
     ax1.set_xlabel('time since first matched pose [s]')
-    ax1.set_ylabel('ATE (Sim(3)) [m]')
+    ax1.set_ylabel(f'ATE ({kind}) [m]')
     ax1.set_ylim(bottom=0.0)
     ax1.grid(True, alpha=0.3)
     ax1.legend(loc='best', fontsize=8)
-    ax1.set_title(f'ATE {r.ate_sim3_pct_of_path:.2f} % of path, {r.pct_tracked:.1f} % tracked')
+    ax1.set_title(f'ATE {kind} {pct:.2f} % of path, {r.pct_tracked:.1f} % tracked')
     if title:
         fig.suptitle(title)
     fig.tight_layout()
@@ -416,9 +440,15 @@ def _build_parser() -> argparse.ArgumentParser:
                    help='write a top-view + error-over-time figure')
     p.add_argument('--cov', metavar='EST.cov', default=None,
                    help='the poses\' covariances (ekf-vo-run --cov): adds the rotation NEES '
-                   '(orientation aligned at the first pose; docs/method.md §11.2)')
+                   '(orientation aligned at the first pose; docs/method.md §11.2), and with '
+                   '--se3 the 6-DoF pose NEES (rigid alignment at the first pose)')
     p.add_argument('--nees-plot', metavar='FILE.png', default=None,
                    help='with --cov: rotation error against 3 sigma, and the NEES, over time')
+    p.add_argument('--se3', action='store_true',
+                   help='the estimate is metric (e.g. ekf-vo-run --set '
+                   'scale_source=camera_height): the SE(3) ATE (no scale fitted) and the scale '
+                   'error head the output, --plot shows the SE(3)-aligned estimate, and --cov '
+                   'adds the 6-DoF pose NEES')
     p.add_argument('-v', '--verbose', action='store_true', help='debug logging')
     return p
 
@@ -461,12 +491,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         est_stamps, est_T = read_trajectory(args.est)
         res = evaluate(gt_stamps, gt_T, est_stamps, est_T,
                        max_time_diff_s=args.max_diff, n_frames_total=args.frames)
-        nees = None
+        nees = pnees = None
         if args.cov:
             from ..io.trajectory import read_covariances
-            from .consistency import rotation_nees
-            nees = rotation_nees(gt_stamps, gt_T, est_stamps, est_T,
-                                 *read_covariances(args.cov), args.max_diff)
+            from .consistency import pose_nees, rotation_nees
+            covs = read_covariances(args.cov)
+            nees = rotation_nees(gt_stamps, gt_T, est_stamps, est_T, *covs, args.max_diff)
+            if args.se3:
+                pnees = pose_nees(gt_stamps, gt_T, est_stamps, est_T, *covs, args.max_diff)
     except (ValueError, EvaluationError) as exc:
         print(f'ekf-vo-eval: error: {exc}', file=sys.stderr)
         return 1
@@ -475,24 +507,47 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
               file=sys.stderr)
         return 1
     if args.plot:
-        plot_result(res, args.plot, title=f'{Path(args.est).name} vs {Path(args.gt).name}')
+        plot_result(res, args.plot, title=f'{Path(args.est).name} vs {Path(args.gt).name}',
+                    se3=args.se3)
     if args.nees_plot:
         from .consistency import plot_rotation_nees
         plot_rotation_nees(nees, args.nees_plot, title=f'{Path(args.est).name}')
+    _print_results(args, res, nees, pnees)
+    return 0
+
+
+def metric_line(r: EvalResult) -> str:
+    """One-line metric (SE(3), no scale fitted) summary: the headline of ``--se3``."""
+    return (f'metric (SE(3), no scale fitted): ATE {r.ate_se3_rmse:.4f} m = '
+            f'{r.ate_se3_pct_of_path:.2f} % of path; scale error {r.scale_error_pct:+.2f} %')
+
+
+def _print_results(args: argparse.Namespace, res: EvalResult, nees: Any, pnees: Any) -> None:
+    """stdout of ``ekf-vo-eval``: JSON, or the table and the NEES lines (metric line first
+    with ``--se3``)."""
     if args.json:
         out = res.to_dict(include_arrays=args.json_arrays)
-        out.update(nees.to_dict() if nees is not None else {})
+        for n in (nees, pnees):
+            out.update(n.to_dict() if n is not None else {})
         print(json.dumps(out, indent=2))
-    else:
-        print(format_table(res))
-        if nees is not None:
-            print(f'rotation NEES (3 dof, 3 ideal; orientation aligned at the first pose): '
-                  f'mean {nees.mean:.2f}, median {nees.median:.2f}, '
-                  f'{nees.pct_above_999:.1f} % of {nees.n_frames} frames above the 99.9 % '
-                  f'bound')
-        if args.plot:
-            print(f'plot: {args.plot}')
-    return 0
+        return
+    if args.se3:
+        print(metric_line(res))
+    print(format_table(res))
+    if nees is not None:
+        print(f'rotation NEES (3 dof, 3 ideal; orientation aligned at the first pose): '
+              f'mean {nees.mean:.2f}, median {nees.median:.2f}, '
+              f'{nees.pct_above_999:.1f} % of {nees.n_frames} frames above the 99.9 % '
+              f'bound')
+    if pnees is not None:
+        skipped = (f' ({pnees.n_skipped} frames skipped: non-finite or singular covariance)'
+                   if pnees.n_skipped else '')
+        print(f'pose NEES (6 dof, 6 ideal; rigid alignment at the first pose, no scale): '
+              f'mean {pnees.mean:.2f}, median {pnees.median:.2f}, '
+              f'{pnees.pct_above_999:.1f} % of {pnees.n_frames} frames above the 99.9 % '
+              f'bound{skipped}')
+    if args.plot:
+        print(f'plot: {args.plot}')
 
 
 if __name__ == '__main__':

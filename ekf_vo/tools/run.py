@@ -65,6 +65,9 @@ from ..io.bag import BagError
 from ..io.bag import topic_counts as _topic_counts
 from ..io.trajectory import GT_TOPIC
 
+#: default nav_msgs/Odometry topic of scale_source odometry (vo_node subscribes scale_odom)
+SCALE_ODOM_TOPIC = '/scale_odom'
+
 logger = logging.getLogger(__name__)
 
 #: per-frame CSV columns before the per-stage timings (``ms_<stage>``) and the message
@@ -111,6 +114,7 @@ class RunSummary:
         n_resets: tracking resets inside the core (summed over VO instances).
         n_camera_changes: calibration changes that re-created the VO.
         local_map: the local map's keyframe and adjustment figures ({} when off).
+        scale: the metric scale's figures at the end (metric_scale.ScaleStatus).
         est_stamps_s: (N,) stamps [s] of the trajectory.
         est_T_world_cam: (N, 4, 4) camera optical frame -> world (VO world frame, VO scale).
         frame_stats: per-frame statistics, in order.
@@ -134,6 +138,7 @@ class RunSummary:
     stage_ms: dict[str, float] = field(default_factory=dict)
     n_resets: int = 0
     n_camera_changes: int = 0
+    scale: dict = field(default_factory=dict)
     local_map: dict = field(default_factory=dict)
     est_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     #: (N, 6, 6) their published covariances (position, world rotation vector)
@@ -154,7 +159,8 @@ class RunSummary:
             'pct_tracked': self.pct_tracked, 'wall_s': self.wall_s, 'fps': self.fps,
             'core_fps': self.core_fps, 'stage_ms': dict(self.stage_ms),
             'n_resets': self.n_resets, 'n_camera_changes': self.n_camera_changes,
-            'local_map': dict(self.local_map), 'gt_bootstrap': self.gt_bootstrap,
+            'local_map': dict(self.local_map), 'scale': dict(self.scale),
+            'gt_bootstrap': self.gt_bootstrap,
             'config': dataclasses.asdict(self.config),
             'eval': self.eval.to_dict() if self.eval is not None else None,
             'eval_error': self.eval_error,
@@ -230,6 +236,19 @@ def make_config(params: str | Path | Mapping[str, Any] | VoConfig | None = None,
     return cfg.validate()
 
 
+def base_extrinsic(params: str | Path | Mapping[str, Any] | VoConfig | None
+                   ) -> np.ndarray:
+    """T_base_cam (4x4) from vo_node's T_base_cam_xyz / _xyzw in the params YAML or
+    mapping (their defaults otherwise): the metric scale's gravity and lever arm."""
+    from ..core.frames import optical_to_body_extrinsic
+    node = NodeConfig()
+    if isinstance(params, (str, Path)):
+        node = split_params(load_yaml_params(str(params), 'vo_node'))[1]
+    elif isinstance(params, Mapping):
+        node = split_params(dict(params))[1]
+    return optical_to_body_extrinsic(node.T_base_cam_xyz, node.T_base_cam_xyzw)
+
+
 # ============================================================================ topics
 def select_topics(topics: Mapping[str, str], image_topic: str | None = None,
                   info_topic: str | None = None, gt_topic: str | None = None
@@ -269,7 +288,8 @@ def run_bag(bag: str | Path,
             gt_bootstrap: bool = False, out_tum: str | Path | None = None,
             stats_csv: str | Path | None = None, progress: bool = False,
             out_cov: str | Path | None = None,
-            max_time_diff_s: float = 0.01, seed: int = 0) -> RunSummary:
+            max_time_diff_s: float = 0.01, seed: int = 0,
+            scale_odom_topic: str | None = None) -> RunSummary:
     """Run :class:`ekf_vo.core.pipeline.VisualOdometry` on a bag (see the module docstring).
 
     Args:
@@ -288,6 +308,8 @@ def run_bag(bag: str | Path,
         max_time_diff_s: association tolerance of the evaluation and of the ground-truth
             lookup for ``gt_bootstrap`` [s].
         seed: RNG seed of the core.
+        scale_odom_topic: nav_msgs/Odometry topic for ``scale_source: odometry``
+            (default SCALE_ODOM_TOPIC).
 
     Returns:
         :class:`RunSummary`.
@@ -306,6 +328,12 @@ def run_bag(bag: str | Path,
         raise RunError(str(exc)) from None
     image_topic, info_topic, gt_topic = select_topics(
         {t: m for t, (m, _) in counts.items()}, image_topic, info_topic, gt_topic)
+    odom_topic = None
+    if cfg.scale_source == 'odometry':
+        odom_topic = scale_odom_topic or SCALE_ODOM_TOPIC
+        if counts.get(odom_topic, ('', 0))[0] != 'nav_msgs/msg/Odometry':
+            raise RunError(f'scale_source odometry: the bag has no nav_msgs/Odometry topic '
+                           f'{odom_topic} (give --scale-odom-topic)')
     gt_ns, gt_T = _ground_truth(bag, gt_topic, gt_bootstrap)
     summary = RunSummary(str(bag), image_topic, info_topic, gt_topic, cfg,
                          gt_bootstrap=gt_bootstrap)
@@ -318,7 +346,8 @@ def run_bag(bag: str | Path,
     known_poses = (gt_ns, gt_T, int(round(max_time_diff_s * 1e9))) if gt_bootstrap else None
     try:
         stream, stamps_s, poses = _feed_stream(bag, cfg, seed, summary, limit, bar,
-                                               known_poses)
+                                               known_poses, base_extrinsic(params),
+                                               odom_topic)
     finally:
         if bar is not None:
             bar.close()
@@ -359,20 +388,22 @@ def _ground_truth(bag: Path, gt_topic: str | None, gt_bootstrap: bool
 
 
 def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
-                 limit: int | None, bar, known_poses
+                 limit: int | None, bar, known_poses, T_base_cam: np.ndarray,
+                 odom_topic: str | None
                  ) -> tuple[VoStream, list[float], list[np.ndarray]]:
-    """Every image and CameraInfo of the bag, in log order, through the core's front
-    door (core.stream.VoStream); fills the counters and per-frame rows of `summary`.
-    `known_poses`: (gt stamps ns, gt poses, tolerance ns) for the ground-truth
-    bootstrap, or None. Returns the stream and the (stamp s, T_world_cam) of ok frames."""
-    from ..bridge import (ConversionError, camera_info_to_dict, stamp_to_ns,
-                          validate_camera_info)
+    """Every image and CameraInfo (and scale odometry) of the bag, in log order, through
+    the core's front door (core.stream.VoStream); fills the counters and per-frame rows
+    of `summary`. `known_poses`: (gt stamps ns, gt poses, tolerance ns) for the
+    ground-truth bootstrap, or None. Returns the stream and the (stamp s, T_world_cam)
+    of ok frames."""
+    from ..bridge import (ConversionError, camera_info_to_dict, odometry_to_pose,
+                          stamp_to_ns, validate_camera_info)
     from ..bridge.image import decode_image
     from ..core.camera import CameraModelError
     from ..core.stream import Rejection
     from ..io.bag import iter_bag
 
-    stream = VoStream(cfg, seed=seed)
+    stream = VoStream(cfg, seed=seed, T_base_cam=T_base_cam)
     stamps_s: list[float] = []
     poses: list[np.ndarray] = []
     #: images waiting for the CameraInfo of their stamp (core/pairing.py): until it comes
@@ -411,8 +442,15 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
             process(*held.pop(0))
 
     t0 = time.perf_counter()
-    for topic, msgtype, log_ns, msg in iter_bag(bag, [summary.image_topic,
-                                                      summary.info_topic]):
+    topics = [summary.image_topic, summary.info_topic] + ([odom_topic] if odom_topic else [])
+    for topic, msgtype, log_ns, msg in iter_bag(bag, topics):
+        if topic == odom_topic:
+            try:
+                stream.add_scale_odometry(stamp_to_ns(msg.header.stamp),
+                                          odometry_to_pose(msg)[0][:3, 3])
+            except ConversionError as exc:
+                logger.warning('skipping %s message at %d ns: %s', topic, log_ns, exc)
+            continue
         if topic == summary.info_topic:
             info_stamp = None
             try:
@@ -453,6 +491,7 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
     summary.n_resets = stream.n_resets
     summary.n_camera_changes = stream.n_camera_changes
     summary.local_map = stream.local_map_stats()
+    summary.scale = stream.scale_status().as_status()
     return stream, stamps_s, poses
 
 
@@ -520,6 +559,10 @@ def format_summary(s: RunSummary) -> str:
         f'speed          {s.fps:.1f} frames/s overall, {s.core_fps:.1f} frames/s core',
         'stage ms       ' + ', '.join(f'{k} {v:.2f}' for k, v in s.stage_ms.items()),
         f'resets         {s.n_resets} (calibration changes: {s.n_camera_changes})',
+        *([f"scale          {s.scale['scale']:.4f} m per map unit +- "
+           f"{s.scale['scale_sigma_pct']:.1f} % ({s.scale['scale_source']}, "
+           f"{s.scale['scale_updates']} measurements, {s.scale['scale_state']})"]
+          if s.scale.get('scale_source', 'none') != 'none' else []),
     ]
     if s.gt_bootstrap:
         lines.append('bootstrap      ground truth (known_T_world_cam while initialising)')
@@ -567,6 +610,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--max-time-diff', type=float, default=0.01, metavar='S',
                    help='stamp association tolerance for the evaluation [s]')
     p.add_argument('--seed', type=int, default=0, help='RNG seed of the core')
+    p.add_argument('--scale-odom-topic', default=None, metavar='TOPIC',
+                   help=f'nav_msgs/Odometry topic for scale_source odometry (default '
+                   f'{SCALE_ODOM_TOPIC})')
     p.add_argument('-q', '--quiet', action='store_true', help='no progress bar, no report')
     return p
 
@@ -591,7 +637,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                           limit=args.limit, gt_bootstrap=args.gt_bootstrap,
                           out_tum=args.output, stats_csv=args.stats, out_cov=args.cov,
                           progress=not args.quiet, max_time_diff_s=args.max_time_diff,
-                          seed=args.seed)
+                          seed=args.seed, scale_odom_topic=args.scale_odom_topic)
     except (RunError, ConfigError, UsageError) as exc:
         print(f'ekf-vo-run: error: {exc}', file=sys.stderr)
         return 2

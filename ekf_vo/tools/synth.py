@@ -32,6 +32,7 @@ import numpy as np
 
 from ..bridge.topics import transport_topic
 from ..cli import HelpFormatter, UsageError, check_writable, entry_point
+from .wheel_odometry import WheelNoise, wheel_odometry
 from .synth_scene import (TRAJECTORIES, Renderer, Scene, make_scene, trajectory_pose,
                           trajectory_stats, undistort_pixels)
 
@@ -186,8 +187,11 @@ def render_sequence(config: SynthConfig, scene: Scene | None = None
 
 def write_bag(config: SynthConfig, out: str | Path, *, raw: bool = True, compressed: bool = False,
               compressed_format: str = 'jpeg', jpeg_quality: int = 90, overwrite: bool = False,
-              tum: str | Path | None = None, progress: bool = False) -> dict[str, float]:
-    """Render ``config`` into the rosbag2 ``out`` (MCAP); returns timing statistics."""
+              tum: str | Path | None = None, progress: bool = False,
+              wheel_odom: WheelNoise | None = None) -> dict[str, float]:
+    """Render ``config`` into the rosbag2 ``out`` (MCAP); returns timing statistics.
+    `wheel_odom` (ground_robot only): also write a synthetic wheel odometry
+    (wheel_odometry.py) on /scale_odom, frame odom -> base_link."""
     from ..io.bag import BagWriter  # local: keeps the renderer importable without rosbags
     from ..io.trajectory import write_tum
 
@@ -204,6 +208,11 @@ def write_bag(config: SynthConfig, out: str | Path, *, raw: bool = True, compres
             it = tqdm(it, unit='frame', desc='synth')
         except ImportError:  # pragma: no cover
             pass
+    odom_xyz = None
+    if wheel_odom is not None:
+        # the trajectory's own time (SequenceRenderer.pose), one sample per frame
+        odom_xyz = wheel_odometry(np.arange(config.frames) / config.rate, wheel_odom,
+                                  config.seed)[0]
     with BagWriter(out, overwrite=overwrite) as bag:
         for k in it:
             tr = time.perf_counter()
@@ -217,6 +226,10 @@ def write_bag(config: SynthConfig, out: str | Path, *, raw: bool = True, compres
                 bag.add_compressed(transport_topic('/camera/image_raw', 'compressed'), img,
                                    stamp, cam_frame, compressed_format, jpeg_quality)
             bag.add_pose('/ground_truth/pose', T, stamp, world_frame)
+            if odom_xyz is not None:
+                T_odom_base = np.eye(4)
+                T_odom_base[:3, 3] = odom_xyz[k]
+                bag.add_odometry('/scale_odom', T_odom_base, stamp, 'odom', 'base_link')
             stamps.append(stamp)
             poses.append(T)
     total = time.perf_counter() - t0
@@ -278,6 +291,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--compressed-format', choices=('jpeg', 'png'), default='jpeg',
                    help='format of the compressed images')
     p.add_argument('--jpeg-quality', type=int, default=90, help='JPEG quality (1-100)')
+    p.add_argument('--wheel-odom', action='store_true',
+                   help='ground_robot: also write a synthetic wheel odometry on /scale_odom '
+                   '(noise and slip episodes, docs/method.md §16.4)')
+    p.add_argument('--wheel-slip', type=float, default=WheelNoise.slip,
+                   help='extra distance the wheels read in a slip episode (0.3 = +30 %%)')
+    p.add_argument('--wheel-slip-share', type=float, default=WheelNoise.slip_share,
+                   help='share of the time in slip episodes')
     p.add_argument('--tum', type=Path, default=None, help='also write ground truth as TUM text')
     p.add_argument('--overwrite', action='store_true', help='replace an existing OUT_BAG')
     p.add_argument('--stats', action='store_true', help='print trajectory speed statistics')
@@ -307,6 +327,10 @@ def check_args(args: argparse.Namespace) -> None:
         check_writable(args.out_bag / 'metadata.yaml', 'OUT_BAG')
     if args.tum is not None:
         check_writable(args.tum, '--tum')
+    if args.wheel_odom and args.trajectory != 'ground_robot':
+        raise UsageError('--wheel-odom needs --trajectory ground_robot')
+    if not (0.0 <= args.wheel_slip_share <= 1.0 and args.wheel_slip >= 0.0):
+        raise UsageError('--wheel-slip must be >= 0 and --wheel-slip-share in [0, 1]')
 
 
 @entry_point
@@ -330,7 +354,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     res = write_bag(cfg, args.out_bag, raw=not args.compressed_only,
                     compressed=args.compressed or args.compressed_only,
                     compressed_format=args.compressed_format, jpeg_quality=args.jpeg_quality,
-                    overwrite=args.overwrite, tum=args.tum, progress=not args.quiet)
+                    overwrite=args.overwrite, tum=args.tum, progress=not args.quiet,
+                    wheel_odom=WheelNoise(slip=args.wheel_slip,
+                                          slip_share=args.wheel_slip_share)
+                    if args.wheel_odom else None)
     size = _dir_size(args.out_bag)
     logger.info('%d frames, render %.1f frames/s, total %.1f s, bag %.2f MB',
                 res['frames'], res['render_fps'], res['total_s'], size / 1e6)

@@ -407,6 +407,9 @@ def _euler_to_R(yaw: float, pitch: float, roll: float) -> np.ndarray:
 _ROBOT_CORNERS = ((-1.5, -1.0), (1.5, -1.0), (1.5, 1.0), (-1.5, 1.0))
 _ROBOT_SPEED, _ROBOT_TURN_RATE, _ROBOT_PAUSE = 0.6, np.radians(60.0), 0.3
 _ROBOT_CAM_HEIGHT, _ROBOT_CAM_AHEAD = 0.4, 0.1
+#: ground_robot: the camera optical frame's origin in the base frame (x ahead, z up; the
+#: base is the turning axis on the floor): vo_node's T_base_cam_xyz for this robot [m]
+GROUND_ROBOT_T_BASE_CAM_XYZ = (_ROBOT_CAM_AHEAD, 0.0, _ROBOT_CAM_HEIGHT)
 
 
 def _smoothstep(u: float) -> float:
@@ -415,7 +418,7 @@ def _smoothstep(u: float) -> float:
     return 0.5 - 0.5 * math.cos(math.pi * u)
 
 
-def _ground_robot(t: float) -> tuple[float, float, float]:
+def ground_robot_base(t: float) -> tuple[float, float, float]:
     """(x, y, heading) of a robot that drives each edge of a rectangle, stops, turns
     90 deg in place, stops, and drives the next edge (peak speed pi/2 x the mean)."""
     n = len(_ROBOT_CORNERS)
@@ -476,7 +479,7 @@ def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
         pitch = 0.1 + 0.12 * np.sin(w(7.0) * t + ph[3])
         roll = 0.06 * np.sin(w(4.5) * t + ph[4])
     elif name == 'ground_robot':
-        xb, yb, heading = _ground_robot(float(t))
+        xb, yb, heading = ground_robot_base(float(t))
         x = xb + _ROBOT_CAM_AHEAD * math.cos(heading)
         y = yb + _ROBOT_CAM_AHEAD * math.sin(heading)
         z, yaw, pitch, roll = _ROBOT_CAM_HEIGHT, heading, 0.0, 0.0

@@ -1,0 +1,334 @@
+"""Metric scale: the map's units in metres, with an uncertainty (docs/method.md §16).
+
+A monocular map has an arbitrary scale. With `scale_source` other than `none`, the
+published odometry is in metres: p_odom = s * p_map + o, where s = exp(lambda) is the
+metres per map unit and o an offset. lambda is filtered here, outside the 13-state EKF
+(which keeps running in map units, so the tracker, the map and the adjustment are
+unchanged): a 1-state Kalman filter whose process noise grows with the distance travelled
+(monocular scale drift, `scale_drift_per_sqrt_m`) and whose measurements come from
+- `camera_height`: the camera's height above the ground plane fitted to map points
+  (ground_plane.py) against `camera_height_m`: z = log(camera_height_m / h_map);
+- `odometry`: an external odometry (wheel odometry): over windows of
+  `scale_odom_window_s`, the distance it travelled against ours: z = log of the median of
+  the sub-segments' ratios (a slipping wheel spoils a minority of sub-segments).
+Each measurement is weighted by a Huber rule on its normalised innovation, so a wrong
+plane or a slip episode moves the scale by at most a bounded step.
+
+Until the first measurement nothing is published (the frame is not `ok`; `~/status` says
+the scale is 'waiting'): odometry in metres was asked for. The scale is applied without
+jumps once settled: until the filter's sigma first falls
+below SETTLED_LOG_SIGMA, a new scale rescales the whole path and map about the world
+origin (the covariance published meanwhile, sigma * s * p, covers that change); after,
+every change rescales about the current camera (o absorbs it), so the published pose is
+continuous and the published map, transformed by the same (s, o), stays consistent with
+it. The pose covariance carries the scale's uncertainty: position s^2 P_pp plus a a^T,
+where a accumulates sigma_lambda * (each frame's metric displacement) — the path travelled
+under an uncertain scale; the twist's linear part gets sigma_lambda^2 v v^T. For
+`camera_height`, the height's own uncertainty (camera_height_sigma_m) is a bias that no
+averaging removes: it is added to sigma_lambda as a consider term.
+
+Pure numpy; no ROS types. Stamps are integer nanoseconds.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import NodeConfig, VoConfig
+from .frame_result import FrameResult
+from .frames import optical_to_body_extrinsic
+from .ground_plane import fit_ground_plane, ground_candidates
+
+logger = logging.getLogger(__name__)
+
+#: lambda's standard deviation before any measurement (a factor e either way)
+PRIOR_LOG_SIGMA = 1.0
+#: a re-bootstrap starts a new map whose scale is carried over from the speed: it is
+#: this uncertain (log) relative to the old one
+REBOOTSTRAP_LOG_SIGMA = 0.3
+#: floor of one ground-plane measurement's log-height noise: the fits of consecutive
+#: frames share points; their per-frame spread on KITTI 06 is 0.03 (§16.2)
+GROUND_FIT_LOG_SIGMA = 0.05
+#: until the filter's log-scale sigma first falls below this, a new scale rescales the
+#: whole path about the origin; afterwards about the current camera (no jumps)
+SETTLED_LOG_SIGMA = 0.03
+#: Huber threshold on a measurement's normalised innovation
+HUBER_K = 2.0
+#: sub-segments of an odometry window (the median survives two slipping ones)
+ODOM_SUBSEGMENTS = 5
+#: `~/status` says 'coasting' after this long without a scale measurement [s]
+COASTING_AFTER_S = 2.0
+#: external odometry samples kept [s]
+ODOM_HISTORY_S = 30.0
+
+
+@dataclass
+class ScaleStatus:
+    """What `~/status` says about the scale."""
+
+    source: str
+    scale: float             #: metres per map unit
+    sigma_pct: float         #: published 1-sigma of the scale [%]
+    updates: int             #: measurements used
+    rejected: int            #: measurements down-weighted by the Huber rule
+    state: str               #: 'map units', 'waiting', 'metric' or 'coasting'
+
+    def as_status(self) -> dict:
+        return {'scale_source': self.source, 'scale': round(self.scale, 5),
+                'scale_sigma_pct': round(self.sigma_pct, 2), 'scale_updates': self.updates,
+                'scale_downweighted': self.rejected, 'scale_state': self.state}
+
+
+class ScaleFilter:
+    """lambda = log(metres per map unit), one state, its variance, Huber-weighted updates."""
+
+    def __init__(self) -> None:
+        self.log_scale = 0.0
+        self.var = PRIOR_LOG_SIGMA ** 2
+        self.updates = 0
+        self.downweighted = 0
+
+    def predict(self, var_increase: float) -> None:
+        self.var += max(var_increase, 0.0)
+
+    def update(self, z: float, r: float) -> bool:
+        """Fuse z = lambda + noise(r). Returns False when Huber down-weighted it."""
+        s = self.var + r
+        nu = z - self.log_scale
+        norm = abs(nu) / math.sqrt(s)
+        full = norm <= HUBER_K
+        if not full:               # Huber: the innovation counts as HUBER_K sigma at most
+            r = s * norm / HUBER_K - self.var
+            s = self.var + r
+            self.downweighted += 1
+        gain = self.var / s
+        self.log_scale += gain * nu
+        self.var *= 1.0 - gain
+        self.updates += 1
+        return full
+
+
+class OdometryWindows:
+    """Scale measurements from an external odometry's travelled distance (see module)."""
+
+    def __init__(self, window_s: float, min_distance_m: float, sigma_rel: float) -> None:
+        self.window_ns = int(window_s * 1e9)
+        self.min_distance_m = min_distance_m
+        self.sigma_rel = sigma_rel
+        self._odom: collections.deque = collections.deque()      # (stamp_ns, xyz)
+        self._frames: list = []       # (stamp_ns, p_cam_map, base lever in world [m])
+
+    def add_odometry(self, stamp_ns: int, xyz: np.ndarray) -> None:
+        if self._odom and stamp_ns <= self._odom[-1][0]:
+            return                             # out of order or repeated: not used
+        self._odom.append((int(stamp_ns), np.asarray(xyz, float)))
+        while self._odom and self._odom[0][0] < stamp_ns - ODOM_HISTORY_S * 1e9:
+            self._odom.popleft()
+
+    def restart(self) -> None:
+        """A new map (new units): the frames so far no longer compare."""
+        self._frames = []
+
+    def add_frame(self, stamp_ns: int, p_cam_map: np.ndarray, lever_world_m: np.ndarray
+                  ) -> tuple[float, float] | None:
+        """Record an ok frame; returns (z, r) when a window is complete."""
+        self._frames.append((int(stamp_ns), p_cam_map.copy(), lever_world_m.copy()))
+        if len(self._odom) < 2:
+            return None
+        last_odom = self._odom[-1][0]
+        done = [f for f in self._frames if f[0] <= last_odom]
+        if len(done) < ODOM_SUBSEGMENTS + 1 or done[-1][0] - done[0][0] < self.window_ns:
+            return None
+        window = done[:]
+        self._frames = self._frames[len(done) - 1:]     # the next window starts here
+        return self._measure(window)
+
+    def _odom_at(self, stamp_ns: int) -> np.ndarray | None:
+        """The odometry position at `stamp_ns`, linearly interpolated; None outside."""
+        stamps = np.fromiter((o[0] for o in self._odom), np.int64, len(self._odom))
+        if not stamps[0] <= stamp_ns <= stamps[-1]:
+            return None
+        xyz = np.array([o[1] for o in self._odom])
+        return np.array([np.interp(stamp_ns, stamps, xyz[:, k]) for k in range(3)])
+
+    def _measure(self, window: list) -> tuple[float, float] | None:
+        cuts = np.linspace(0, len(window) - 1, ODOM_SUBSEGMENTS + 1).round().astype(int)
+        ratios, total = [], 0.0
+        for i, j in zip(cuts[:-1], cuts[1:]):
+            (t1, p1, l1), (t2, p2, l2) = window[i], window[j]
+            o1, o2 = self._odom_at(t1), self._odom_at(t2)
+            if o1 is None or o2 is None or j <= i:
+                continue
+            d = float(np.linalg.norm(o2 - o1))
+            total += d
+            if d < self.min_distance_m / ODOM_SUBSEGMENTS:
+                continue                       # standing still: no scale in it
+            s = _scale_for_chord(p2 - p1, l2 - l1, d)
+            if s is not None:
+                ratios.append(math.log(s))
+        if total < self.min_distance_m or len(ratios) < 3:
+            return None
+        ratios = np.array(ratios)
+        logger.debug('odometry window: sub-segment scales %s, odometry %.3f m',
+                     np.round(np.exp(ratios), 4), total)
+        z = float(np.median(ratios))
+        mad = 1.4826 * float(np.median(np.abs(ratios - z)))
+        return z, self.sigma_rel ** 2 + mad ** 2 / len(ratios)
+
+
+def _scale_for_chord(a: np.ndarray, b: np.ndarray, d: float) -> float | None:
+    """s > 0 with |s a + b| = d: the camera moved a (map units), the base's lever arm
+    turned by b (metres), the base travelled d metres in a straight line."""
+    aa, ab, bb = a @ a, a @ b, b @ b
+    if aa <= 0:
+        return None
+    disc = ab * ab - aa * (bb - d * d)
+    if disc < 0:
+        return None
+    s = (-ab + math.sqrt(disc)) / aa
+    return s if s > 0 else None
+
+
+class MetricScale:
+    """The map's scale for one estimator's world, and FrameResults converted to metres."""
+
+    def __init__(self, cfg: VoConfig, T_base_cam: np.ndarray | None = None) -> None:
+        self.cfg = cfg
+        self.source = cfg.scale_source
+        if T_base_cam is None:           # vo_node's default extrinsic (config.NodeConfig)
+            node = NodeConfig()
+            T_base_cam = optical_to_body_extrinsic(node.T_base_cam_xyz, node.T_base_cam_xyzw)
+        T_bc = np.asarray(T_base_cam, float)
+        #: gravity in the camera optical frame (the base's -z) and the base origin there
+        self.down_cam = T_bc[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+        self.base_in_cam = -T_bc[:3, :3].T @ T_bc[:3, 3]
+        self._rng = np.random.default_rng(0)
+        self.odometry = OdometryWindows(cfg.scale_odom_window_s,
+                                        cfg.scale_odom_min_distance_m, cfg.scale_odom_sigma)
+        self.reset()
+
+    @property
+    def active(self) -> bool:
+        return self.source != 'none'
+
+    def reset(self) -> None:
+        """A new world (new estimator): the scale is unknown again."""
+        self.filter = ScaleFilter()
+        self.scale = 1.0                 # published metres per map unit
+        self.offset = np.zeros(3)        # published p = scale * p_map + offset
+        self._down_world: np.ndarray | None = None
+        self._last_p_map: np.ndarray | None = None
+        self._lever = np.zeros(3)        # accumulated d p / d lambda, metres
+        self._settled = False            # rescaled about the camera from now on
+        self.last_fix_ns: int | None = None
+        self.last_frame_ns: int | None = None
+        self.odometry.restart()
+
+    def add_odometry(self, stamp_ns: int, xyz: np.ndarray) -> None:
+        self.odometry.add_odometry(stamp_ns, xyz)
+
+    @property
+    def bias_var(self) -> float:
+        if self.source != 'camera_height':
+            return 0.0
+        return (self.cfg.camera_height_sigma_m / self.cfg.camera_height_m) ** 2
+
+    @property
+    def published_sigma(self) -> float:
+        return math.sqrt(self.filter.var + self.bias_var)
+
+    def points(self, X_map: np.ndarray) -> np.ndarray:
+        """Map points in the published (metric) frame."""
+        return self.scale * np.asarray(X_map, float) + self.offset
+
+    # ------------------------------------------------------------------ per frame
+    def apply(self, res: FrameResult, X_world: np.ndarray, n_obs: np.ndarray) -> None:
+        """Update the scale with this frame and convert `res` to metres in place."""
+        if not (self.active and res.ok and res.T_world_cam is not None):
+            return
+        T = res.T_world_cam
+        p_map = T[:3, 3].copy()
+        if self._down_world is None:
+            self._down_world = T[:3, :3] @ self.down_cam
+        if res.bootstrapped and self._last_p_map is not None:
+            self.filter.predict(REBOOTSTRAP_LOG_SIGMA ** 2)     # a new map's units
+            self.odometry.restart()
+        step_m = 0.0 if self._last_p_map is None else \
+            self.scale * float(np.linalg.norm(p_map - self._last_p_map))
+        self.filter.predict(self.cfg.scale_drift_per_sqrt_m ** 2 * step_m)
+        self._measure(res, T, X_world, n_obs)
+        self.last_frame_ns = res.stamp_ns
+        self._publish_scale(p_map)
+        if not self.filter.updates:
+            # odometry in metres was asked for: nothing is published in map units
+            res.ok = False
+            res.message = f'tracking; waiting for the metric scale ({self.source})'
+            return
+        self._convert(res)
+
+    def _measure(self, res: FrameResult, T: np.ndarray, X_world: np.ndarray,
+                 n_obs: np.ndarray) -> None:
+        z_r = None
+        if self.source == 'camera_height':
+            rel = ground_candidates(X_world, n_obs, T, self._down_world)
+            plane = fit_ground_plane(rel, self._down_world, self.cfg.ground_max_tilt_deg,
+                                     self._rng)
+            if plane is not None:
+                r = max(plane.spread ** 2 / plane.n_inliers, GROUND_FIT_LOG_SIGMA ** 2)
+                z_r = (math.log(self.cfg.camera_height_m / plane.height), r)
+        elif self.source == 'odometry':
+            z_r = self.odometry.add_frame(res.stamp_ns, T[:3, 3], T[:3, :3] @
+                                          self.base_in_cam)
+        if z_r is not None and all(math.isfinite(v) for v in z_r):
+            full = self.filter.update(*z_r)
+            logger.debug('scale measurement %.4f (sigma %.4f)%s -> scale %.4f', math.exp(
+                z_r[0]), math.sqrt(z_r[1]), '' if full else ' down-weighted',
+                math.exp(self.filter.log_scale))
+            self.last_fix_ns = res.stamp_ns
+
+    def _publish_scale(self, p_map: np.ndarray) -> None:
+        new = math.exp(self.filter.log_scale)
+        sigma = self.published_sigma
+        if not self._settled:
+            # the scale is still settling: the path so far is rescaled as a whole, about
+            # the world origin (its covariance, sigma * s * p, covers such a change)
+            self.offset = np.zeros(3)
+            self._lever = sigma * new * p_map
+        else:
+            # later: about the current camera, so the published pose does not jump
+            self.offset = self.offset + (self.scale - new) * p_map
+            self._lever = self._lever + sigma * new * (p_map - self._last_p_map)
+        self._settled = self._settled or math.sqrt(self.filter.var) < SETTLED_LOG_SIGMA
+        self.scale = new
+        self._last_p_map = p_map
+
+    def _convert(self, res: FrameResult) -> None:
+        s, sigma = self.scale, self.published_sigma
+        T = res.T_world_cam.copy()
+        T[:3, 3] = self.points(T[:3, 3])
+        res.T_world_cam = T
+        S = np.diag([s, s, s, 1.0, 1.0, 1.0])
+        res.pose_cov = S @ res.pose_cov @ S
+        res.pose_cov[:3, :3] += np.outer(self._lever, self._lever)
+        if res.twist_cam is not None:
+            twist = res.twist_cam.copy()
+            twist[:3] *= s
+            res.twist_cam = twist
+            res.twist_cov = S @ res.twist_cov @ S
+            res.twist_cov[:3, :3] += sigma ** 2 * np.outer(twist[:3], twist[:3])
+
+    def status(self) -> ScaleStatus:
+        if not self.active:
+            state = 'map units'
+        elif self.filter.updates == 0:
+            state = 'waiting'
+        elif self.last_frame_ns - self.last_fix_ns > COASTING_AFTER_S * 1e9:
+            state = 'coasting'          # no measurement lately: the uncertainty grows
+        else:
+            state = 'metric'
+        return ScaleStatus(self.source, self.scale, 100.0 * self.published_sigma,
+                           self.filter.updates, self.filter.downweighted, state)

@@ -1,0 +1,163 @@
+"""Metric scale (core/metric_scale.py, core/ground_plane.py, docs/method.md §16)."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from ekf_vo.config import ConfigError, VoConfig
+from ekf_vo.core.frame_result import FrameResult, TrackingState
+from ekf_vo.core.frames import optical_to_body_extrinsic
+from ekf_vo.core.ground_plane import fit_ground_plane, ground_candidates
+from ekf_vo.core.metric_scale import MetricScale, OdometryWindows, ScaleFilter
+from ekf_vo.tools.run import run_bag
+from ekf_vo.tools.synth import SynthConfig, write_bag
+from ekf_vo.tools.synth_scene import GROUND_ROBOT_T_BASE_CAM_XYZ
+from ekf_vo.tools.wheel_odometry import WheelNoise
+
+from .support.data import need_shared_data
+
+
+def _cfg(**kw) -> VoConfig:
+    return VoConfig.from_mapping({**dataclasses.asdict(VoConfig()), **kw})
+
+
+def test_camera_height_source_needs_the_height():
+    with pytest.raises(ConfigError, match='camera_height_m'):
+        _cfg(scale_source='camera_height')
+    assert _cfg(scale_source='camera_height', camera_height_m=1.65).camera_height_m == 1.65
+
+
+def test_the_scale_filter_converges_and_bounds_an_outlier_step():
+    rng = np.random.default_rng(1)
+    f = ScaleFilter()
+    true = math.log(2.5)
+    for _ in range(200):
+        f.update(true + 0.05 * rng.standard_normal(), 0.05 ** 2)
+    assert abs(f.log_scale - true) < 3 * math.sqrt(f.var)
+    before, n_down = f.log_scale, f.downweighted
+    assert n_down < 20                                 # ~5 % of Gaussian ones beyond 2 sigma
+    assert not f.update(true + 5.0, 0.05 ** 2)          # 100 sigma away: Huber
+    # a full update would move it by 5 * var / (var + r) ~ 0.025; Huber: 2 sigma at most
+    assert abs(f.log_scale - before) < 2.0 * math.sqrt(f.var + 0.05 ** 2) * 0.05
+    assert f.downweighted == n_down + 1
+
+
+def _camera_over_plane(height: float, rng: np.random.Generator):
+    """Points on a road `height` below a level camera (optical y down), clutter above
+    it (a car, a wall) and a verge out of the corridor."""
+    T = np.eye(4)
+    road = np.column_stack((rng.uniform(-1.5, 1.5, 150), np.full(150, height),
+                            rng.uniform(3, 25, 150)))
+    road[:, 1] += 0.01 * height * rng.standard_normal(150)
+    car = np.column_stack((rng.uniform(-1, 1, 60), rng.uniform(0.3, 0.8, 60) * height,
+                           rng.uniform(8, 10, 60)))
+    verge = np.column_stack((rng.uniform(4, 8, 60), np.full(60, 0.8 * height),
+                             rng.uniform(3, 20, 60)))
+    X = np.vstack((road, car, verge))
+    return T, X, np.full(len(X), 5)
+
+
+def test_the_ground_plane_is_the_road_not_the_clutter():
+    rng = np.random.default_rng(2)
+    T, X, n_obs = _camera_over_plane(0.7, rng)
+    down = np.array([0.0, 1.0, 0.0])
+    rel = ground_candidates(X, n_obs, T, down)
+    plane = fit_ground_plane(rel, down, 15.0, np.random.default_rng(0))
+    assert plane is not None
+    assert plane.height == pytest.approx(0.7, rel=0.01)
+    assert plane.normal @ down > math.cos(math.radians(2))
+    # too few observations: no candidates, no plane
+    assert fit_ground_plane(ground_candidates(X, np.ones(len(X)), T, down), down, 15.0,
+                            np.random.default_rng(0)) is None
+
+
+def test_odometry_windows_survive_a_slip_episode():
+    """Map units are 1/2.0 m; one of five sub-segments reads 30 % too far."""
+    win = OdometryWindows(window_s=2.0, min_distance_m=0.3, sigma_rel=0.02)
+    stamps = np.arange(0, 3.0, 1 / 30)
+    speed = 0.5                                        # m/s along x
+    slip = (stamps > 0.5) & (stamps < 0.9)
+    odom_x = np.cumsum(np.where(slip, 1.3, 1.0) * speed / 30)
+    for t, x in zip(stamps, odom_x):
+        win.add_odometry(int(t * 1e9), np.array([x, 0.0, 0.0]))
+    out = None
+    for t in stamps:
+        p_map = np.array([0.0, 0.0, speed * t / 2.0])  # camera z forward, map units
+        out = win.add_frame(int(t * 1e9), p_map, np.zeros(3)) or out
+    assert out is not None
+    z, r = out
+    assert math.exp(z) == pytest.approx(2.0, rel=0.02)
+    assert 0 < r < 0.05 ** 2
+
+
+def _frame(stamp_ns: int, p: np.ndarray, v: np.ndarray) -> FrameResult:
+    T = np.eye(4)
+    T[:3, 3] = p
+    return FrameResult(stamp_ns, TrackingState.TRACKING, ok=True, T_world_cam=T,
+                       pose_cov=np.eye(6) * 1e-4, twist_cam=np.concatenate((v, np.zeros(3))),
+                       twist_cov=np.eye(6) * 1e-4)
+
+
+def test_published_odometry_waits_for_the_scale_then_never_jumps():
+    """A camera at 0.4 m/s (map units of 0.5 m) with wheel odometry of the base."""
+    cfg = _cfg(scale_source='odometry', scale_odom_window_s=1.0)
+    T_bc = optical_to_body_extrinsic((0.0, 0.0, 0.0), (-0.5, 0.5, -0.5, 0.5))
+    scale = MetricScale(cfg, T_bc)
+    rng = np.random.default_rng(3)
+    published, first_ok = [], None
+    for k in range(300):
+        t = k / 30
+        scale.add_odometry(int(t * 1e9), np.array([0.4 * t * (1 + 0.01 * rng.standard_normal()),
+                                                   0.0, 0.0]))
+        res = _frame(int(t * 1e9), np.array([0.0, 0.0, 0.8 * t]), np.array([0, 0, 0.8]))
+        scale.apply(res, np.zeros((0, 3)), np.zeros(0, int))
+        if res.ok:
+            first_ok = k if first_ok is None else first_ok
+            published.append((res.T_world_cam[:3, 3].copy(), res.pose_cov.copy(),
+                              res.twist_cam.copy(), scale.points(np.array([[0, 0, 0.8 * t]]))))
+        else:
+            assert 'waiting for the metric scale' in res.message
+    assert first_ok is not None and first_ok >= 30           # a window of 1 s first
+    assert scale.status().state == 'metric'
+    assert scale.scale == pytest.approx(0.5, rel=0.02)
+    steps = np.diff([p[2] for p, *_ in published[-100:]])
+    assert np.all(np.abs(steps - 0.4 / 30) < 0.002)          # continuous, about 1.3 cm
+    for p, cov, twist, X in published:
+        assert np.allclose(X[0], p)                          # the map moves with the pose
+        assert np.all(np.linalg.eigvalsh(cov) > 0)
+    assert published[-1][2][2] == pytest.approx(0.4, rel=0.02)   # twist in m/s
+    # the position covariance carries the scale's uncertainty along the path
+    assert published[-1][1][2, 2] > published[0][1][2, 2]
+
+
+def test_kitti_camera_height_gives_metres():
+    """KITTI 06 f0-50 through ekf-vo-run with the camera 1.65 m above the road (the
+    bench: figures in docs/method.md §16.5; margins here are wider)."""
+    folder = need_shared_data('kitti06_f0-50', 'metric scale test')
+    import tempfile
+    from pathlib import Path
+
+    from ekf_vo.tools.convert import convert
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = Path(tmp) / 'kitti'
+        convert('kitti', folder, bag)
+        s = run_bag(bag, None, {'scale_source': 'camera_height', 'camera_height_m': 1.65})
+    assert s.eval is not None
+    assert abs(s.eval.scale_error_pct) < 5.0
+    assert s.eval.ate_se3_pct_of_path < 2.0
+    assert s.scale['scale_state'] == 'metric' and s.n_resets == 0
+
+
+def test_synthetic_wheel_odometry_gives_metres(tmp_path):
+    """The ground robot's first edge (no turn) with slipping wheel odometry in the bag."""
+    bag = tmp_path / 'robot'
+    write_bag(SynthConfig(trajectory='ground_robot', frames=170), bag,
+              wheel_odom=WheelNoise(slip_share=0.2))
+    params = {'T_base_cam_xyz': list(GROUND_ROBOT_T_BASE_CAM_XYZ)}
+    s = run_bag(bag, params, {'scale_source': 'odometry'})
+    assert s.eval is not None and s.scale['scale_updates'] >= 1
+    assert abs(s.eval.scale_error_pct) < 3.0
+    assert s.eval.ate_se3_pct_of_path < 3.0
