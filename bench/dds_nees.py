@@ -52,15 +52,18 @@ def _record(bag: Path, work: Path) -> list:
     return list(odom)
 
 
-def camera_poses(msgs: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def camera_poses(msgs: list, T_bc: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(stamps s, T_world_cam (n,4,4), 6x6 covariances whose rotation block is in the
-    camera's world frame) from odometry messages of a node with the default extrinsic."""
+    camera's world frame) from odometry messages of a node with the extrinsic `T_bc`
+    (T_base_cam; None: the default one)."""
     from ekf_vo import bridge as conv
     from ekf_vo.config import NodeConfig
     from ekf_vo.core import geometry as geo
     from ekf_vo.core.frames import optical_to_body_extrinsic
-    cfg = NodeConfig()
-    T_bc = optical_to_body_extrinsic(cfg.T_base_cam_xyz, cfg.T_base_cam_xyzw)
+    if T_bc is None:
+        cfg = NodeConfig()
+        T_bc = optical_to_body_extrinsic(cfg.T_base_cam_xyz, cfg.T_base_cam_xyzw)
     R_bc = T_bc[:3, :3]
     stamps, poses, covs = [], [], []
     for m in msgs:

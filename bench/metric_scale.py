@@ -10,6 +10,11 @@
   straight drive) and the whole loop with four 90 deg turns in place (760 frames), each
   with 5 % and 20 % of the time slipping; `scale_source: odometry`, the robot's extrinsic.
 
+With --dds, the raw KITTI bag (camera_height) and the robot's first edge (odometry, 5 %
+slip) are also played in real time into a vo_node over DDS (queue_policy all), and the
+recorded nav_msgs/Odometry, brought back to the camera's optical frame with the node's
+extrinsic, is evaluated the same way (ATE and scale error; no NEES).
+
 Per run: frames published, scale error (the Sim(3) fit's scale, est/true - 1), ATE after
 SE(3) alignment (no scale fitted) and after Sim(3), both in % of the path, and the 6-DoF
 pose NEES (rigid alignment at the first published pose; 6 ideal, 22.46 the 99.9 % bound).
@@ -88,6 +93,73 @@ def robot(seeds: list[int], work: Path) -> dict[str, list]:
     return out
 
 
+def dds_run(bag: Path, params: list[str], work: Path, T_base_cam_xyz=(0.0, 0.0, 0.0)
+            ) -> dict[str, Any]:
+    """Play `bag` into a fresh vo_node (extra `-p` parameters `params`) and evaluate the
+    odometry it publishes."""
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from bench.dds_nees import camera_poses
+    from ekf_vo.config import NodeConfig
+    from ekf_vo.core.frames import optical_to_body_extrinsic
+    from ekf_vo.io.bag import read_ground_truth, topic_counts
+    from ekf_vo.ros.harness import Harness, NodeProcess, domain_id_for
+    from ekf_vo.ros.player import play_bag
+    from ekf_vo.tools.evaluate import evaluate
+    topics = [t for t in topic_counts(bag) if t != '/ground_truth/pose']
+    args = ['-r', 'image:=/camera/image_raw', '-r', 'camera_info:=/camera/camera_info',
+            '-r', 'odom:=/odom', '-r', 'scale_odom:=/scale_odom', '-p',
+            'queue_policy:=all', '-p', 'T_base_cam_xyz:=[%s]' % ','.join(
+                str(float(v)) for v in T_base_cam_xyz)]
+    for item in params:
+        args += ['-p', item]
+    domain = domain_id_for(__name__)
+    node = NodeProcess('ekf_vo.ros.vo_node', args, domain, work / 'vo_node.log')
+    node.wait_for_output('vo_node ready')
+    h = Harness(domain)
+    try:
+        odom = h.record(Odometry, '/odom', QoSProfile(
+            reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL))
+        play_bag(h.node, bag, rate=1.0, topics=topics, clock=False, wait_for=['*'],
+                 wait_timeout_s=20.0)
+        n_last, quiet = -1, 0
+        while quiet < 3:                    # until the answers stop coming
+            h.spin_for(0.5)
+            quiet = quiet + 1 if len(odom) == n_last else 0
+            n_last = len(odom)
+    finally:
+        h.close()
+        node.stop()
+    T_bc = optical_to_body_extrinsic(T_base_cam_xyz, NodeConfig().T_base_cam_xyzw)
+    stamps, poses, _ = camera_poses(list(odom), T_bc)
+    gt_ns, gt_T = read_ground_truth(bag)
+    ev = evaluate(gt_ns * 1e-9, gt_T, stamps, poses, n_frames_total=len(gt_ns))
+    return {'seed': 'dds', 'frames': len(gt_ns), 'pct_published': ev.pct_tracked,
+            'resets': 0, 'scale': {}, 'scale_error_pct': ev.scale_error_pct,
+            'ate_se3_pct': ev.ate_se3_pct_of_path, 'ate_sim3_pct': ev.ate_sim3_pct_of_path,
+            'pose_nees_mean': None, 'pose_nees_median': None, 'pose_nees_pct_above': None}
+
+
+def dds(work: Path) -> dict[str, list]:
+    from bench.common import shared_data
+    from ekf_vo.tools.synth import SynthConfig, write_bag
+    from ekf_vo.tools.synth_scene import GROUND_ROBOT_T_BASE_CAM_XYZ
+    from ekf_vo.tools.wheel_odometry import WheelNoise
+    out: dict[str, list] = {}
+    folder = shared_data(SEQUENCE)
+    if folder is not None:
+        bag = build_bags(folder, work, ['raw-before'])['raw-before']
+        out['raw-before over DDS'] = [dds_run(bag, [
+            'scale_source:=camera_height', 'camera_height_m:=1.65'], work)]
+    bag = work / 'robot_edge_dds'
+    write_bag(SynthConfig(trajectory='ground_robot', frames=ROBOT_CASES['edge']), bag,
+              wheel_odom=WheelNoise(), overwrite=True)
+    out['robot edge, slip 5% over DDS'] = [dds_run(bag, ['scale_source:=odometry'], work,
+                                                   GROUND_ROBOT_T_BASE_CAM_XYZ)]
+    return out
+
+
 def _fmt(v: Any, spec: str = '.2f') -> str:
     return '-' if v is None else format(v, spec)
 
@@ -113,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2])
     p.add_argument('--only', choices=('kitti', 'robot'), default=None)
+    p.add_argument('--dds', action='store_true', help='also through vo_node over DDS')
     p.add_argument('--json', type=Path, default=None)
     args = p.parse_args(argv)
     results: dict[str, list] = {}
@@ -121,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
             results.update(kitti(args.seeds, Path(tmp)))
         if args.only in (None, 'robot'):
             results.update(robot(args.seeds, Path(tmp)))
+        if args.dds:
+            results.update(dds(Path(tmp)))
     print(table(results))
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=1) + '\n', encoding='utf-8')

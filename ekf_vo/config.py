@@ -278,6 +278,10 @@ class VoConfig(_Params):
         0.01, 'Growth of the scale\'s log-uncertainty with the distance travelled '
         '(monocular scale drift): its variance grows by this squared per metre.',
         '1/sqrt(m)', 0.0, 10.0, group='scale')
+    scale_drift_per_sqrt_rad: float = param(
+        0.05, 'Growth of the scale\'s log-uncertainty with the angle turned (a turn, even '
+        'in place, renews the map): its variance grows by this squared per radian.',
+        '1/sqrt(rad)', 0.0, 10.0, group='scale')
     scale_odom_window_s: float = param(
         2.0, 'odometry: one scale measurement per window of this length (the median of '
         'its sub-segments\' distance ratios).', 's', 0.1, 600.0, group='scale')

@@ -4,8 +4,10 @@ A monocular map has an arbitrary scale. With `scale_source` other than `none`, t
 published odometry is in metres: p_odom = s * p_map + o, where s = exp(lambda) is the
 metres per map unit and o an offset. lambda is filtered here, outside the 13-state EKF
 (which keeps running in map units, so the tracker, the map and the adjustment are
-unchanged): a 1-state Kalman filter whose process noise grows with the distance travelled
-(monocular scale drift, `scale_drift_per_sqrt_m`) and whose measurements come from
+unchanged): a 1-state Kalman filter. Its prediction grows lambda's variance with the
+distance travelled and the angle turned (monocular scale drift: `scale_drift_per_sqrt_m`,
+`scale_drift_per_sqrt_rad`), and by REBOOTSTRAP_LOG_SIGMA^2 at a re-bootstrap. Its
+measurements come from
 - `camera_height`: the camera's height above the ground plane fitted to map points
   (ground_plane.py) against `camera_height_m`: z = log(camera_height_m / h_map);
 - `odometry`: an external odometry (wheel odometry): over windows of
@@ -18,7 +20,10 @@ Until the first measurement nothing is published (the frame is not `ok`; `~/stat
 the scale is 'waiting'): odometry in metres was asked for. The scale is applied without
 jumps once settled: until the filter's sigma first falls
 below SETTLED_LOG_SIGMA, a new scale rescales the whole path and map about the world
-origin (the covariance published meanwhile, sigma * s * p, covers that change); after,
+origin (the covariance published meanwhile, sigma * s * p, covers that change) — and
+whenever the sigma rises above UNSETTLED_LOG_SIGMA again (a re-bootstrap, whose new map
+has units carried over from the speed; a long turn without measurements), the path since
+then about the camera's position at that moment, until the scale settles again; after,
 every change rescales about the current camera (o absorbs it), so the published pose is
 continuous and the published map, transformed by the same (s, o), stays consistent with
 it. The pose covariance carries the scale's uncertainty: position s^2 P_pp plus a a^T,
@@ -56,6 +61,9 @@ GROUND_FIT_LOG_SIGMA = 0.05
 #: until the filter's log-scale sigma first falls below this, a new scale rescales the
 #: whole path about the origin; afterwards about the current camera (no jumps)
 SETTLED_LOG_SIGMA = 0.03
+#: once settled, a sigma above this (a re-bootstrap, a long turn without measurements)
+#: unsettles it: the path from where the camera is then is rescaled as a whole again
+UNSETTLED_LOG_SIGMA = 0.06
 #: Huber threshold on a measurement's normalised innovation
 HUBER_K = 2.0
 #: sub-segments of an odometry window (the median survives two slipping ones)
@@ -222,8 +230,12 @@ class MetricScale:
         self.offset = np.zeros(3)        # published p = scale * p_map + offset
         self._down_world: np.ndarray | None = None
         self._last_p_map: np.ndarray | None = None
+        self._last_R = np.eye(3)
         self._lever = np.zeros(3)        # accumulated d p / d lambda, metres
         self._settled = False            # rescaled about the camera from now on
+        #: while unsettled, the scale changes about this map point (map units), which
+        #: stays where it was published (metres), with the lever accumulated till then
+        self._pivot = (np.zeros(3), np.zeros(3), np.zeros(3))
         self.last_fix_ns: int | None = None
         self.last_frame_ns: int | None = None
         self.odometry.restart()
@@ -255,11 +267,23 @@ class MetricScale:
         if self._down_world is None:
             self._down_world = T[:3, :3] @ self.down_cam
         if res.bootstrapped and self._last_p_map is not None:
-            self.filter.predict(REBOOTSTRAP_LOG_SIGMA ** 2)     # a new map's units
+            # a new map, attached where the camera is, in units carried over from the
+            # speed (the sigma rise unsettles the scale, below)
+            self.filter.predict(REBOOTSTRAP_LOG_SIGMA ** 2)
             self.odometry.restart()
-        step_m = 0.0 if self._last_p_map is None else \
-            self.scale * float(np.linalg.norm(p_map - self._last_p_map))
-        self.filter.predict(self.cfg.scale_drift_per_sqrt_m ** 2 * step_m)
+        if self._last_p_map is not None:
+            # the map's scale drifts as it is renewed: with the distance travelled, and
+            # with the angle turned (a turn in place replaces the points in view)
+            step_m = self.scale * float(np.linalg.norm(p_map - self._last_p_map))
+            cos_turn = (np.trace(self._last_R.T @ T[:3, :3]) - 1.0) / 2.0
+            turn = math.acos(min(max(cos_turn, -1.0), 1.0))
+            self.filter.predict(self.cfg.scale_drift_per_sqrt_m ** 2 * step_m +
+                                self.cfg.scale_drift_per_sqrt_rad ** 2 * turn)
+            if self._settled and math.sqrt(self.filter.var) > UNSETTLED_LOG_SIGMA:
+                # the scale is uncertain again: settle it anew, about where the camera is
+                self._pivot = (p_map, self.points(p_map), self._lever.copy())
+                self._settled = False
+        self._last_R = T[:3, :3].copy()
         self._measure(res, T, X_world, n_obs)
         self.last_frame_ns = res.stamp_ns
         self._publish_scale(p_map)
@@ -294,10 +318,12 @@ class MetricScale:
         new = math.exp(self.filter.log_scale)
         sigma = self.published_sigma
         if not self._settled:
-            # the scale is still settling: the path so far is rescaled as a whole, about
-            # the world origin (its covariance, sigma * s * p, covers such a change)
-            self.offset = np.zeros(3)
-            self._lever = sigma * new * p_map
+            # the scale is still settling: the path since the pivot (the world origin, or
+            # a re-bootstrap's attach point) is rescaled as a whole about it; the
+            # covariance published meanwhile, sigma * s * (p - pivot), covers that
+            pivot_map, pivot_published, pivot_lever = self._pivot
+            self.offset = pivot_published - new * pivot_map
+            self._lever = pivot_lever + sigma * new * (p_map - pivot_map)
         else:
             # later: about the current camera, so the published pose does not jump
             self.offset = self.offset + (self.scale - new) * p_map
