@@ -6,11 +6,13 @@
   CameraInfo before / after its image), `scale_source: camera_height`,
   `camera_height_m: 1.65`.
 - The rendered ground robot with a synthetic wheel odometry (/scale_odom; 2 % distance
-  noise, 1 % heading noise, slip episodes reading +30 %): its first edge (170 frames, a
-  straight drive) and the whole loop with four 90 deg turns in place (760 frames), each
-  with 5 % and 20 % of the time slipping; `scale_source: odometry`, the robot's extrinsic.
+  noise, 1 % heading noise, slip episodes of 1 s reading +30 %): its first edge (170
+  frames, a straight drive), the whole loop with four 90 deg turns in place (760 frames),
+  and the rectangle with rounded corners driven without stopping (ground_robot_arcs, 550
+  frames, one loop), each with 5 % and 20 % of the time slipping; `scale_source:
+  odometry`, the robot's extrinsic.
 
-With --dds, the raw KITTI bag (camera_height) and the robot's first edge (odometry, 5 %
+With --dds, the raw KITTI bag (camera_height) and the robot's rounded loop (odometry, 5 %
 slip) are also played in real time into a vo_node over DDS (queue_policy all), and the
 recorded nav_msgs/Odometry, brought back to the camera's optical frame with the node's
 extrinsic, is evaluated the same way (ATE and scale error; no NEES).
@@ -35,7 +37,9 @@ from bench.local_map import VARIANTS, build_bags
 
 SEQUENCE = 'kitti06_f0-50'
 KITTI_SCALE = {'scale_source': 'camera_height', 'camera_height_m': 1.65}
-ROBOT_CASES = {'edge': 170, 'loop': 760}
+#: case -> (trajectory, frames)
+ROBOT_CASES = {'edge': ('ground_robot', 170), 'loop': ('ground_robot', 760),
+               'arcs': ('ground_robot_arcs', 550)}
 SLIP_SHARES = (0.05, 0.2)
 
 
@@ -81,12 +85,12 @@ def robot(seeds: list[int], work: Path) -> dict[str, list]:
     from ekf_vo.tools.wheel_odometry import WheelNoise
     params = {'T_base_cam_xyz': list(GROUND_ROBOT_T_BASE_CAM_XYZ)}
     out: dict[str, list] = {}
-    for case, frames in ROBOT_CASES.items():
+    for case, (trajectory, frames) in ROBOT_CASES.items():
         for share in SLIP_SHARES:
             runs = []
             for seed in seeds:
                 bag = work / f'robot_{case}_{share}_{seed}'
-                write_bag(SynthConfig(trajectory='ground_robot', frames=frames, seed=seed),
+                write_bag(SynthConfig(trajectory=trajectory, frames=frames, seed=seed),
                           bag, wheel_odom=WheelNoise(slip_share=share), overwrite=True)
                 runs.append(run_one(bag, params, {'scale_source': 'odometry'}, seed))
             out[f'robot {case}, slip {share:.0%}'] = runs
@@ -152,10 +156,11 @@ def dds(work: Path) -> dict[str, list]:
         bag = build_bags(folder, work, ['raw-before'])['raw-before']
         out['raw-before over DDS'] = [dds_run(bag, [
             'scale_source:=camera_height', 'camera_height_m:=1.65'], work)]
-    bag = work / 'robot_edge_dds'
-    write_bag(SynthConfig(trajectory='ground_robot', frames=ROBOT_CASES['edge']), bag,
+    trajectory, frames = ROBOT_CASES['arcs']
+    bag = work / 'robot_arcs_dds'
+    write_bag(SynthConfig(trajectory=trajectory, frames=frames), bag,
               wheel_odom=WheelNoise(), overwrite=True)
-    out['robot edge, slip 5% over DDS'] = [dds_run(bag, ['scale_source:=odometry'], work,
+    out['robot arcs, slip 5% over DDS'] = [dds_run(bag, ['scale_source:=odometry'], work,
                                                    GROUND_ROBOT_T_BASE_CAM_XYZ)]
     return out
 

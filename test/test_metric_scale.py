@@ -46,16 +46,16 @@ def test_the_scale_filter_converges_and_bounds_an_outlier_step():
 
 
 def _camera_over_plane(height: float, rng: np.random.Generator):
-    """Points on a road `height` below a level camera (optical y down), clutter above
-    it (a car, a wall) and a verge out of the corridor."""
+    """Points on a road `height` below a level camera (optical y down) from 1.5 to 30
+    heights ahead, clutter above it nearby (a car) and a verge out of the corridor."""
     T = np.eye(4)
-    road = np.column_stack((rng.uniform(-1.5, 1.5, 150), np.full(150, height),
-                            rng.uniform(3, 25, 150)))
-    road[:, 1] += 0.01 * height * rng.standard_normal(150)
-    car = np.column_stack((rng.uniform(-1, 1, 60), rng.uniform(0.3, 0.8, 60) * height,
-                           rng.uniform(8, 10, 60)))
-    verge = np.column_stack((rng.uniform(4, 8, 60), np.full(60, 0.8 * height),
-                             rng.uniform(3, 20, 60)))
+    road = np.column_stack((rng.uniform(-1, 1, 300) * height, np.full(300, height),
+                            rng.uniform(1.5, 30, 300) * height))
+    road[:, 1] += 0.01 * height * rng.standard_normal(300)
+    car = np.column_stack((rng.uniform(-1, 1, 60), rng.uniform(0.3, 0.8, 60),
+                           rng.uniform(3, 4, 60))) * height
+    verge = np.column_stack((rng.uniform(2, 4, 60), np.full(60, 0.8),
+                             rng.uniform(1.5, 5, 60))) * height
     X = np.vstack((road, car, verge))
     return T, X, np.full(len(X), 5)
 
@@ -161,3 +161,38 @@ def test_synthetic_wheel_odometry_gives_metres(tmp_path):
     assert s.eval is not None and s.scale['scale_updates'] >= 1
     assert abs(s.eval.scale_error_pct) < 3.0
     assert s.eval.ate_se3_pct_of_path < 3.0
+
+
+def test_a_turn_or_a_rebootstrap_unsettles_the_scale_about_the_camera():
+    """Turning in place grows the scale's uncertainty; a re-bootstrap lifts it past 6 %,
+    and the path from there is rescaled about that point (which stays where it was
+    published) until it settles again. Map units of 0.5 m."""
+    cfg = _cfg(scale_source='odometry', scale_odom_window_s=1.0)
+    scale = MetricScale(cfg, optical_to_body_extrinsic((0.0, 0.0, 0.0),
+                                                       (-0.5, 0.5, -0.5, 0.5)))
+    state = {'k': 0, 'z': 0.0, 'yaw': 0.0}
+
+    def drive(n: int, speed_map: float, yaw_rate: float = 0.0, bootstrapped=False):
+        for i in range(n):
+            t = state['k'] / 30
+            state['z'] += speed_map / 30
+            state['yaw'] += yaw_rate / 30
+            scale.add_odometry(int(t * 1e9), np.array([0.5 * state['z'], 0.0, 0.0]))
+            res = _frame(int(t * 1e9), np.array([0.0, 0.0, state['z']]),
+                         np.array([0, 0, speed_map]))
+            c, s_ = math.cos(state['yaw']), math.sin(state['yaw'])
+            res.T_world_cam[:3, :3] = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
+            res.bootstrapped = bootstrapped and i == 0
+            scale.apply(res, np.zeros((0, 3)), np.zeros(0, int))
+            state['k'] += 1
+    drive(150, 0.8)                                  # 5 s straight: measured, settled
+    assert scale.status().state == 'metric' and scale.published_sigma < 0.035
+    sigma_before = scale.published_sigma
+    drive(90, 0.0, yaw_rate=math.radians(30))        # 90 deg in place, nothing measured
+    assert scale.published_sigma > sigma_before      # the turn renewed the map
+    drive(1, 0.8, bootstrapped=True)                 # a new map: sigma + 30 %
+    pivot_map, pivot_published, _ = scale._pivot
+    assert not scale._settled and scale.published_sigma > 0.06
+    drive(45, 0.8)                                   # measured again
+    assert np.allclose(scale.points(pivot_map), pivot_published)   # rescaled about it
+    assert scale.scale == pytest.approx(0.5, rel=0.05)

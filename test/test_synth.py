@@ -79,6 +79,30 @@ def test_ground_robot_drives_stops_and_turns_in_place() -> None:
     assert 0.8 < st['speed_max'] < 1.0 and 80 < st['rot_max_deg_s'] < 100
 
 
+def test_ground_robot_arcs_turns_while_driving() -> None:
+    """The rounded rectangle: a constant 0.5 m/s, 360 deg per 18.3 s loop, never in
+    place; and the synthetic wheel odometry follows its base within the noise."""
+    from ekf_vo.tools.synth_scene import robot_base
+    from ekf_vo.tools.wheel_odometry import WheelNoise, wheel_odometry
+    rate = 30.0
+    ts = np.arange(0, 18.28, 1 / rate)
+    Ts = np.stack([synth.trajectory_pose('ground_robot_arcs', float(t)) for t in ts])
+    assert np.allclose(Ts[:, 2, 3], 0.4)
+    base = np.array([robot_base('ground_robot_arcs', float(t))[:2] for t in ts])
+    speed = np.linalg.norm(np.diff(base, axis=0), axis=1) * rate
+    assert np.allclose(speed, 0.5, atol=0.01)
+    heading = np.array([robot_base('ground_robot_arcs', float(t))[2] for t in ts])
+    assert heading[-1] - heading[0] == pytest.approx(2 * np.pi, abs=0.05)
+    odom, slipping = wheel_odometry('ground_robot_arcs', ts, WheelNoise(slip_share=0.0))
+    assert not slipping.any()
+    steps = np.linalg.norm(np.diff(odom[:, :2], axis=0), axis=1) * rate
+    assert abs(np.mean(steps) - 0.5) < 0.01           # 2 % white noise per step
+    odom_slip, slipping = wheel_odometry('ground_robot_arcs', ts, WheelNoise(slip_share=0.2))
+    assert 0.1 < slipping.mean() < 0.3
+    steps = np.linalg.norm(np.diff(odom_slip[:, :2], axis=0), axis=1) * rate
+    assert np.mean(steps[slipping[1:]]) == pytest.approx(0.65, rel=0.05)   # +30 %
+
+
 def test_handheld_rotation_mostly_rotates() -> None:
     st = synth.trajectory_stats('handheld_rotation', 20.0, SEED)
     assert st['speed_max'] < 0.15 and 80 < st['rot_max_deg_s'] < 120

@@ -3,11 +3,11 @@
 For `scale_source: camera_height`: the camera's height above the road in map units,
 against its known height in metres, gives the map's scale (as viso2's monocular odometry
 does). The points used are map points in front of the camera, seen from at least
-MIN_OBSERVATIONS keyframes/frames (better triangulated), and at least BELOW_HORIZON_DEG
-below the horizon that the gravity prior (the base extrinsic) defines, in the vehicle's corridor. A plane is fitted
-with RANSAC; its normal must lie within `max_tilt_deg` of gravity (a wall or a parked
-car's side is not the ground); the plane with the most support wins and is refined by
-least squares (SVD) on its inliers.
+MIN_OBSERVATIONS keyframes/frames (better triangulated), at least BELOW_HORIZON_DEG below
+the horizon that the gravity prior (the base extrinsic) defines, in the vehicle's corridor
+and near it. A plane is fitted with RANSAC; its normal must lie within `max_tilt_deg` of
+gravity (a wall or a parked car's side is not the ground); the plane with the most support
+wins and is refined by least squares (SVD) on its inliers.
 
 Hand-written: OpenCV has no plane RANSAC and scikit-image is not a dependency; the loop
 is 3-point hypotheses on at most a few hundred points, vectorised over the points.
@@ -31,6 +31,11 @@ INLIER_BAND = 0.05
 #: camera heights of the wheel track (KITTI 06: the fits' mean error 6.5 % -> 1.4 %;
 #: the verge, parked cars and kerbs lie outside)
 CORRIDOR = 1.5
+#: ... and no further ahead than this many times its depth below the camera (KITTI: 10 m):
+#: the near road is flat, free and best triangulated (forward motion gives it the most
+#: parallax). KITTI 06, 8 runs: scale error mean +1.37 % with no limit, +0.20 % with 6
+#: (12: +1.41 %, 8: +0.45 %, 5: +0.32 %)
+NEAR = 6.0
 #: fewest inliers for a plane to count
 MIN_INLIERS = 10
 #: RANSAC hypotheses per fit
@@ -51,15 +56,16 @@ class GroundPlane:
 def ground_candidates(X_world: np.ndarray, n_obs: np.ndarray, T_world_cam: np.ndarray,
                       down_world: np.ndarray) -> np.ndarray:
     """(m,3) map points relative to the camera centre that may lie on the ground: in front
-    of the camera, below the horizon of `down_world`, inside the vehicle's CORRIDOR, and
-    seen at least MIN_OBSERVATIONS times."""
+    of the camera, below the horizon of `down_world`, inside the vehicle's CORRIDOR and
+    NEAR it, and seen at least MIN_OBSERVATIONS times."""
     rel = np.asarray(X_world, float) - T_world_cam[:3, 3]
     depth = rel @ T_world_cam[:3, 2]
     sideways = np.abs(rel @ T_world_cam[:3, 0])
     below = rel @ down_world
     horizontal = np.sqrt(np.maximum(np.einsum('ij,ij->i', rel, rel) - below ** 2, 0.0))
     keep = (depth > 0) & (below > horizontal * np.tan(np.radians(BELOW_HORIZON_DEG))) & \
-        (sideways < CORRIDOR * below) & (np.asarray(n_obs) >= MIN_OBSERVATIONS)
+        (sideways < CORRIDOR * below) & (depth < NEAR * below) & \
+        (np.asarray(n_obs) >= MIN_OBSERVATIONS)
     return rel[keep]
 
 

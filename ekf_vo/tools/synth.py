@@ -190,7 +190,7 @@ def write_bag(config: SynthConfig, out: str | Path, *, raw: bool = True, compres
               tum: str | Path | None = None, progress: bool = False,
               wheel_odom: WheelNoise | None = None) -> dict[str, float]:
     """Render ``config`` into the rosbag2 ``out`` (MCAP); returns timing statistics.
-    `wheel_odom` (ground_robot only): also write a synthetic wheel odometry
+    `wheel_odom` (the ground_robot trajectories): also write a synthetic wheel odometry
     (wheel_odometry.py) on /scale_odom, frame odom -> base_link."""
     from ..io.bag import BagWriter  # local: keeps the renderer importable without rosbags
     from ..io.trajectory import write_tum
@@ -211,13 +211,17 @@ def write_bag(config: SynthConfig, out: str | Path, *, raw: bool = True, compres
     odom_xyz = None
     if wheel_odom is not None:
         # the trajectory's own time (SequenceRenderer.pose), one sample per frame
-        odom_xyz = wheel_odometry(np.arange(config.frames) / config.rate, wheel_odom,
-                                  config.seed)[0]
+        odom_xyz = wheel_odometry(config.trajectory, np.arange(config.frames) / config.rate,
+                                  wheel_odom, config.seed)[0]
     with BagWriter(out, overwrite=overwrite) as bag:
         for k in it:
             tr = time.perf_counter()
             stamp, img, T = seq.frame(k)
             t_render += time.perf_counter() - tr
+            if odom_xyz is not None:    # a wheel odometry's message precedes the image's
+                T_odom_base = np.eye(4)
+                T_odom_base[:3, 3] = odom_xyz[k]
+                bag.add_odometry('/scale_odom', T_odom_base, stamp, 'odom', 'base_link')
             bag.add_camera_info('/camera/camera_info', config.width, config.height, K, D,
                                 'plumb_bob', stamp, cam_frame)
             if raw:
@@ -226,10 +230,6 @@ def write_bag(config: SynthConfig, out: str | Path, *, raw: bool = True, compres
                 bag.add_compressed(transport_topic('/camera/image_raw', 'compressed'), img,
                                    stamp, cam_frame, compressed_format, jpeg_quality)
             bag.add_pose('/ground_truth/pose', T, stamp, world_frame)
-            if odom_xyz is not None:
-                T_odom_base = np.eye(4)
-                T_odom_base[:3, 3] = odom_xyz[k]
-                bag.add_odometry('/scale_odom', T_odom_base, stamp, 'odom', 'base_link')
             stamps.append(stamp)
             poses.append(T)
     total = time.perf_counter() - t0
@@ -250,6 +250,8 @@ TRAJECTORY_HELP = {
     'figure8': 'lemniscate 3 m x 2 m at 1.4 m height, heading loosely following the path',
     'ground_robot': 'camera 0.4 m up on a robot driving a 3 m x 2 m rectangle, stopping and '
                     'turning 90 deg in place at each corner',
+    'ground_robot_arcs': 'the same robot and rectangle, corners rounded to 0.5 m, driven at '
+                         'a constant 0.5 m/s (turning while driving)',
     'handheld_rotation': 'hand-held at 1.5 m, mostly rotating: yaw +-30, pitch +-20, '
                          'roll +-15 deg at up to ~100 deg/s, a few cm of translation',
 }
@@ -292,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='format of the compressed images')
     p.add_argument('--jpeg-quality', type=int, default=90, help='JPEG quality (1-100)')
     p.add_argument('--wheel-odom', action='store_true',
-                   help='ground_robot: also write a synthetic wheel odometry on /scale_odom '
+                   help='ground_robot(_arcs): also write a synthetic wheel odometry on /scale_odom '
                    '(noise and slip episodes, docs/method.md §16.4)')
     p.add_argument('--wheel-slip', type=float, default=WheelNoise.slip,
                    help='extra distance the wheels read in a slip episode (0.3 = +30 %%)')
@@ -327,8 +329,8 @@ def check_args(args: argparse.Namespace) -> None:
         check_writable(args.out_bag / 'metadata.yaml', 'OUT_BAG')
     if args.tum is not None:
         check_writable(args.tum, '--tum')
-    if args.wheel_odom and args.trajectory != 'ground_robot':
-        raise UsageError('--wheel-odom needs --trajectory ground_robot')
+    if args.wheel_odom and not args.trajectory.startswith('ground_robot'):
+        raise UsageError('--wheel-odom needs --trajectory ground_robot(_arcs)')
     if not (0.0 <= args.wheel_slip_share <= 1.0 and args.wheel_slip >= 0.0):
         raise UsageError('--wheel-slip must be >= 0 and --wheel-slip-share in [0, 1]')
 

@@ -25,7 +25,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-TRAJECTORIES = ('walk', 'orbit', 'figure8', 'ground_robot', 'handheld_rotation')
+TRAJECTORIES = ('walk', 'orbit', 'figure8', 'ground_robot', 'ground_robot_arcs',
+                'handheld_rotation')
 
 # Room: x in [-3.5, 3.5], y in [-2.75, 2.75], z in [0, 2.8] (metres, world frame, z up).
 ROOM_MIN = np.array([-3.5, -2.75, 0.0])
@@ -449,6 +450,46 @@ def ground_robot_base(t: float) -> tuple[float, float, float]:
     return float(a[0]), float(a[1]), heading0
 
 
+#: ground_robot_arcs: the same rectangle with corners rounded to this radius (m), driven
+#: at this constant speed (m/s): the robot turns while it drives, never in place
+_ARC_RADIUS, _ARC_SPEED = 0.5, 0.5
+
+
+def _rounded_rectangle(s: float) -> tuple[float, float, float]:
+    """(x, y, heading) at arc length `s` along the rounded rectangle (counter-clockwise,
+    starting at the first straight edge's start)."""
+    (x0, y0), (x1, y1) = _ROBOT_CORNERS[0], _ROBOT_CORNERS[2]
+    r = _ARC_RADIUS
+    straights = (x1 - x0 - 2 * r, y1 - y0 - 2 * r) * 2
+    starts = ((x0 + r, y0), (x1, y0 + r), (x1 - r, y1), (x0, y1 - r))
+    arc = math.pi / 2 * r
+    s = s % (sum(straights) + 4 * arc)
+    for k in range(4):
+        heading = k * math.pi / 2
+        d = np.array([math.cos(heading), math.sin(heading)])
+        if s < straights[k]:
+            p = np.array(starts[k]) + s * d
+            return float(p[0]), float(p[1]), heading
+        s -= straights[k]
+        if s < arc:
+            end = np.array(starts[k]) + straights[k] * d
+            centre = end + r * np.array([-d[1], d[0]])
+            phi = s / r
+            p = centre + r * np.array([math.sin(heading + phi), -math.cos(heading + phi)])
+            return float(p[0]), float(p[1]), heading + phi
+        s -= arc
+    return float(starts[0][0]), float(starts[0][1]), 0.0
+
+
+def robot_base(name: str, t: float) -> tuple[float, float, float]:
+    """(x, y, heading) of the base of the robot trajectory `name` at time `t`."""
+    if name == 'ground_robot':
+        return ground_robot_base(t)
+    if name == 'ground_robot_arcs':
+        return _rounded_rectangle(_ARC_SPEED * t)
+    raise ValueError(f'{name!r} is not a ground-robot trajectory')
+
+
 def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
     """T_world_cam (optical frame) at time ``t`` seconds of trajectory ``name``.
 
@@ -457,6 +498,8 @@ def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
     ground_robot: a camera 0.4 m above the floor, 0.1 m ahead of the axis a robot turns
     about, driving a 3 m x 2 m rectangle at up to 0.94 m/s, stopping and turning 90 deg
     in place (up to 94 deg/s) at each corner (period 25.1 s; ``seed`` does not change it).
+    ground_robot_arcs: the same robot and rectangle, corners rounded to 0.5 m, driven at a
+    constant 0.5 m/s (57 deg/s in the arcs; period 18.3 s).
     handheld_rotation: a hand-held camera at 1.5 m that mostly rotates: yaw +-30 deg,
     pitch +-20 deg, roll +-15 deg at up to ~100 deg/s, with a few cm of translation.
     """
@@ -478,8 +521,8 @@ def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
         yaw = th + np.pi / 2 - 0.6 + 0.12 * np.sin(w(6.0) * t + ph[2])  # tangent, turned outward
         pitch = 0.1 + 0.12 * np.sin(w(7.0) * t + ph[3])
         roll = 0.06 * np.sin(w(4.5) * t + ph[4])
-    elif name == 'ground_robot':
-        xb, yb, heading = ground_robot_base(float(t))
+    elif name in ('ground_robot', 'ground_robot_arcs'):
+        xb, yb, heading = robot_base(name, float(t))
         x = xb + _ROBOT_CAM_AHEAD * math.cos(heading)
         y = yb + _ROBOT_CAM_AHEAD * math.sin(heading)
         z, yaw, pitch, roll = _ROBOT_CAM_HEIGHT, heading, 0.0, 0.0

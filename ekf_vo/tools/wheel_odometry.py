@@ -1,7 +1,7 @@
 """A synthetic wheel odometry for rendered ground-robot sequences (docs/method.md §16.4).
 
-The robot's base (its turning axis on the floor) follows synth_scene's `ground_robot`
-path; the wheels measure each step's travelled distance with a relative white noise and,
+The robot's base (its turning axis on the floor) follows synth_scene's `ground_robot` or
+`ground_robot_arcs` path; the wheels measure each step's travelled distance with a relative white noise and,
 in slip episodes, too much distance (the wheels spin); the heading integrates the true
 heading change with a small relative error. Positions are integrated in the odometry's
 own frame (starting at the origin), as a real wheel odometry would publish them.
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .synth_scene import ground_robot_base
+from .synth_scene import robot_base
 
 
 @dataclass(frozen=True)
@@ -25,7 +25,7 @@ class WheelNoise:
     slip_episode_s: float = 1.0      #: length of one slip episode [s]
 
 
-def wheel_odometry(stamps_s: np.ndarray, noise: WheelNoise, seed: int = 0
+def wheel_odometry(trajectory: str, stamps_s: np.ndarray, noise: WheelNoise, seed: int = 0
                    ) -> tuple[np.ndarray, np.ndarray]:
     """(positions (N,3) in the odometry frame [m], slipping (N,) bool) at `stamps_s`, the
     trajectory's own time (0 at its start, synth_scene.trajectory_pose)."""
@@ -38,10 +38,10 @@ def wheel_odometry(stamps_s: np.ndarray, noise: WheelNoise, seed: int = 0
     for s in starts:
         slipping |= (t >= s) & (t < s + noise.slip_episode_s)
     xyz = np.zeros((len(t), 3))
-    x0, y0, h_prev = ground_robot_base(t[0]) if len(t) else (0.0, 0.0, 0.0)
+    x0, y0, h_prev = robot_base(trajectory, t[0]) if len(t) else (0.0, 0.0, 0.0)
     prev, heading = np.array([x0, y0]), 0.0
     for k in range(1, len(t)):
-        xb, yb, h = ground_robot_base(t[k])
+        xb, yb, h = robot_base(trajectory, t[k])
         step = np.array([xb, yb]) - prev
         forward = np.array([math.cos(h_prev), math.sin(h_prev)])
         dist = float(np.linalg.norm(step)) * (1.0 if step @ forward >= 0 else -1.0)
