@@ -196,3 +196,18 @@ def test_a_turn_or_a_rebootstrap_unsettles_the_scale_about_the_camera():
     drive(45, 0.8)                                   # measured again
     assert np.allclose(scale.points(pivot_map), pivot_published)   # rescaled about it
     assert scale.scale == pytest.approx(0.5, rel=0.05)
+
+
+def test_a_slow_robot_gets_its_scale_from_longer_windows():
+    """0.1 m/s: a 1 s window holds 0.1 m, under scale_odom_min_distance_m (0.3 m): the
+    window grows until the odometry has travelled that far."""
+    win = OdometryWindows(window_s=1.0, min_distance_m=0.3, sigma_rel=0.02)
+    out, first_at = None, None
+    for k in range(300):
+        t = k / 30
+        win.add_odometry(int(t * 1e9), np.array([0.1 * t, 0.0, 0.0]))
+        got = win.add_frame(int(t * 1e9), np.array([0.0, 0.0, 0.1 * t / 0.5]), np.zeros(3))
+        if got is not None and first_at is None:
+            first_at, out = t, got
+    assert first_at is not None and 2.9 < first_at < 3.5
+    assert math.exp(out[0]) == pytest.approx(0.5, rel=0.01)

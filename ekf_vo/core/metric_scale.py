@@ -10,8 +10,9 @@ distance travelled and the angle turned (monocular scale drift: `scale_drift_per
 measurements come from
 - `camera_height`: the camera's height above the ground plane fitted to map points
   (ground_plane.py) against `camera_height_m`: z = log(camera_height_m / h_map);
-- `odometry`: an external odometry (wheel odometry): over windows of
-  `scale_odom_window_s`, the distance it travelled against ours: z = log of the median of
+- `odometry`: an external odometry (wheel odometry): over windows of at least
+  `scale_odom_window_s` and `scale_odom_min_distance_m`, the distance it travelled against
+  ours: z = log of the median of
   the sub-segments' ratios (a slipping wheel spoils a minority of sub-segments).
 Each measurement is weighted by a Huber rule on its normalised innovation, so a wrong
 plane or a slip episode moves the scale by at most a bounded step.
@@ -68,6 +69,9 @@ UNSETTLED_LOG_SIGMA = 0.06
 HUBER_K = 2.0
 #: sub-segments of an odometry window (the median survives two slipping ones)
 ODOM_SUBSEGMENTS = 5
+#: a window whose odometry stays under scale_odom_min_distance_m for this many window
+#: lengths starts afresh (the robot stands)
+STILL_WINDOWS = 5
 #: `~/status` says 'coasting' after this long without a scale measurement [s]
 COASTING_AFTER_S = 2.0
 #: external odometry samples kept [s]
@@ -82,13 +86,13 @@ class ScaleStatus:
     scale: float             #: metres per map unit
     sigma_pct: float         #: published 1-sigma of the scale [%]
     updates: int             #: measurements used
-    rejected: int            #: measurements down-weighted by the Huber rule
+    downweighted: int        #: measurements the Huber rule down-weighted
     state: str               #: 'map units', 'waiting', 'metric' or 'coasting'
 
     def as_status(self) -> dict:
         return {'scale_source': self.source, 'scale': round(self.scale, 5),
                 'scale_sigma_pct': round(self.sigma_pct, 2), 'scale_updates': self.updates,
-                'scale_downweighted': self.rejected, 'scale_state': self.state}
+                'scale_downweighted': self.downweighted, 'scale_state': self.state}
 
 
 class ScaleFilter:
@@ -129,6 +133,7 @@ class OdometryWindows:
         self.sigma_rel = sigma_rel
         self._odom: collections.deque = collections.deque()      # (stamp_ns, xyz)
         self._frames: list = []       # (stamp_ns, p_cam_map, base lever in world [m])
+        self.restart()
 
     def add_odometry(self, stamp_ns: int, xyz: np.ndarray) -> None:
         if self._odom and stamp_ns <= self._odom[-1][0]:
@@ -151,9 +156,16 @@ class OdometryWindows:
         done = [f for f in self._frames if f[0] <= last_odom]
         if len(done) < ODOM_SUBSEGMENTS + 1 or done[-1][0] - done[0][0] < self.window_ns:
             return None
-        window = done[:]
+        first, last = self._odom_at(done[0][0]), self._odom_at(done[-1][0])
+        if first is None or last is None or \
+                np.linalg.norm(last - first) < self.min_distance_m:
+            # too little motion yet: the window grows (a slow robot), or starts afresh
+            # when the robot stands for STILL_WINDOWS window lengths
+            if done[-1][0] - done[0][0] > STILL_WINDOWS * self.window_ns:
+                self._frames = self._frames[len(done) - 1:]
+            return None
         self._frames = self._frames[len(done) - 1:]     # the next window starts here
-        return self._measure(window)
+        return self._measure(done)
 
     def _odom_at(self, stamp_ns: int) -> np.ndarray | None:
         """The odometry position at `stamp_ns`, linearly interpolated; None outside."""
@@ -165,24 +177,22 @@ class OdometryWindows:
 
     def _measure(self, window: list) -> tuple[float, float] | None:
         cuts = np.linspace(0, len(window) - 1, ODOM_SUBSEGMENTS + 1).round().astype(int)
-        ratios, total = [], 0.0
+        ratios = []
         for i, j in zip(cuts[:-1], cuts[1:]):
             (t1, p1, l1), (t2, p2, l2) = window[i], window[j]
             o1, o2 = self._odom_at(t1), self._odom_at(t2)
             if o1 is None or o2 is None or j <= i:
                 continue
             d = float(np.linalg.norm(o2 - o1))
-            total += d
-            if d < self.min_distance_m / ODOM_SUBSEGMENTS:
-                continue                       # standing still: no scale in it
+            if d < 0.5 * self.min_distance_m / ODOM_SUBSEGMENTS:
+                continue                       # (nearly) standing: no scale in it
             s = _scale_for_chord(p2 - p1, l2 - l1, d)
             if s is not None:
                 ratios.append(math.log(s))
-        if total < self.min_distance_m or len(ratios) < 3:
+        if len(ratios) < 3:
             return None
         ratios = np.array(ratios)
-        logger.debug('odometry window: sub-segment scales %s, odometry %.3f m',
-                     np.round(np.exp(ratios), 4), total)
+        logger.debug('odometry window: sub-segment scales %s', np.round(np.exp(ratios), 4))
         z = float(np.median(ratios))
         mad = 1.4826 * float(np.median(np.abs(ratios - z)))
         return z, self.sigma_rel ** 2 + mad ** 2 / len(ratios)
