@@ -191,7 +191,7 @@ def test_a_turn_or_a_rebootstrap_unsettles_the_scale_about_the_camera():
     drive(90, 0.0, yaw_rate=math.radians(30))        # 90 deg in place, nothing measured
     assert scale.published_sigma > sigma_before      # the turn renewed the map
     drive(1, 0.8, bootstrapped=True)                 # a new map: sigma + 30 %
-    pivot_map, pivot_published, _ = scale._pivot
+    pivot_map, pivot_published = scale._pivot[:2]
     assert not scale._settled and scale.published_sigma > 0.06
     drive(45, 0.8)                                   # measured again
     assert np.allclose(scale.points(pivot_map), pivot_published)   # rescaled about it
@@ -211,3 +211,26 @@ def test_a_slow_robot_gets_its_scale_from_longer_windows():
             first_at, out = t, got
     assert first_at is not None and 2.9 < first_at < 3.5
     assert math.exp(out[0]) == pytest.approx(0.5, rel=0.01)
+
+
+def test_the_scale_error_does_not_cancel_on_a_loop_once_measured():
+    """A loop back to the start: with scale measurements along the way, the position
+    covariance from the scale does not shrink back to zero at the start point (a fully
+    correlated model would say the loop closed exactly)."""
+    cfg = _cfg(scale_source='odometry', scale_odom_window_s=1.0)
+    scale = MetricScale(cfg, optical_to_body_extrinsic((0.0, 0.0, 0.0),
+                                                       (-0.5, 0.5, -0.5, 0.5)))
+    radius, n = 2.0, 900                         # a 2 m circle in map units, 30 s
+    for k in range(n + 1):
+        t = k / 30
+        phi = 2 * math.pi * k / n
+        p = radius * np.array([math.sin(phi), 0.0, 1 - math.cos(phi)])
+        scale.add_odometry(int(t * 1e9), np.array([0.5 * p[0], 0.5 * p[2], 0.0]))
+        res = _frame(int(t * 1e9), p, np.array([0, 0, 0.4]))
+        scale.apply(res, np.zeros((0, 3)), np.zeros(0, int))
+        if k == n // 2:
+            halfway = np.trace(res.pose_cov[:3, :3])
+    assert scale.filter.updates > 10
+    end = np.trace(res.pose_cov[:3, :3])
+    floor = np.trace(np.eye(3) * 1e-4) * scale.scale ** 2     # the EKF's own part
+    assert end - floor > 0.1 * (halfway - floor) > 0

@@ -27,9 +27,14 @@ has units carried over from the speed; a long turn without measurements), the pa
 then about the camera's position at that moment, until the scale settles again; after,
 every change rescales about the current camera (o absorbs it), so the published pose is
 continuous and the published map, transformed by the same (s, o), stays consistent with
-it. The pose covariance carries the scale's uncertainty: position s^2 P_pp plus a a^T,
-where a accumulates sigma_lambda * (each frame's metric displacement) — the path travelled
-under an uncertain scale; the twist's linear part gets sigma_lambda^2 v v^T. For
+it. The pose covariance carries the scale's uncertainty: position s^2 P_pp plus the
+covariance of the position error the scale made, e_p, kept as a Schmidt consider term
+with its cross-covariance c with lambda: each step d adds d lambda * d (so e_p's
+covariance grows by d c^T + c d^T + var d d^T and c by var d), and each scale
+measurement shrinks c by the factor it shrinks lambda's variance: errors made before a
+measurement no longer cancel those made after it (on a loop, a fully correlated model
+would let the covariance shrink back as the robot returns). The twist's linear part
+gets sigma_lambda^2 v v^T. For
 `camera_height`, the height's own uncertainty (camera_height_sigma_m) is a bias that no
 averaging removes: it is added to sigma_lambda as a consider term.
 
@@ -241,11 +246,14 @@ class MetricScale:
         self._down_world: np.ndarray | None = None
         self._last_p_map: np.ndarray | None = None
         self._last_R = np.eye(3)
-        self._lever = np.zeros(3)        # accumulated d p / d lambda, metres
+        #: the published position's error from the scale (Schmidt consider terms): its
+        #: covariance [m^2] and its cross-covariance with lambda [m]
+        self._P_pp = np.zeros((3, 3))
+        self._c_lp = np.zeros(3)
         self._settled = False            # rescaled about the camera from now on
         #: while unsettled, the scale changes about this map point (map units), which
-        #: stays where it was published (metres), with the lever accumulated till then
-        self._pivot = (np.zeros(3), np.zeros(3), np.zeros(3))
+        #: stays where it was published (metres); with the two terms at that moment
+        self._pivot = (np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3))
         self.last_fix_ns: int | None = None
         self.last_frame_ns: int | None = None
         self.odometry.restart()
@@ -291,7 +299,8 @@ class MetricScale:
                                 self.cfg.scale_drift_per_sqrt_rad ** 2 * turn)
             if self._settled and math.sqrt(self.filter.var) > UNSETTLED_LOG_SIGMA:
                 # the scale is uncertain again: settle it anew, about where the camera is
-                self._pivot = (p_map, self.points(p_map), self._lever.copy())
+                self._pivot = (p_map, self.points(p_map), self._P_pp.copy(),
+                               self._c_lp.copy())
                 self._settled = False
         self._last_R = T[:3, :3].copy()
         self._measure(res, T, X_world, n_obs)
@@ -318,7 +327,12 @@ class MetricScale:
             z_r = self.odometry.add_frame(res.stamp_ns, T[:3, 3], T[:3, :3] @
                                           self.base_in_cam)
         if z_r is not None and all(math.isfinite(v) for v in z_r):
+            before = self.published_sigma ** 2
             full = self.filter.update(*z_r)
+            # the update decorrelates lambda from the position errors made so far
+            shrink = self.published_sigma ** 2 / before
+            self._c_lp = self._c_lp * shrink
+            self._pivot = self._pivot[:3] + (self._pivot[3] * shrink,)
             logger.debug('scale measurement %.4f (sigma %.4f)%s -> scale %.4f', math.exp(
                 z_r[0]), math.sqrt(z_r[1]), '' if full else ' down-weighted',
                 math.exp(self.filter.log_scale))
@@ -326,18 +340,25 @@ class MetricScale:
 
     def _publish_scale(self, p_map: np.ndarray) -> None:
         new = math.exp(self.filter.log_scale)
-        sigma = self.published_sigma
+        var = self.published_sigma ** 2
         if not self._settled:
             # the scale is still settling: the path since the pivot (the world origin, or
-            # a re-bootstrap's attach point) is rescaled as a whole about it; the
-            # covariance published meanwhile, sigma * s * (p - pivot), covers that
-            pivot_map, pivot_published, pivot_lever = self._pivot
+            # a re-bootstrap's attach point) is rescaled as a whole about it, so its
+            # error is the pivot's plus d lambda times the metres since it
+            pivot_map, pivot_published, P_pp, c_lp = self._pivot
             self.offset = pivot_published - new * pivot_map
-            self._lever = pivot_lever + sigma * new * (p_map - pivot_map)
+            d = new * (p_map - pivot_map)
+            self._P_pp = P_pp + np.outer(d, c_lp) + np.outer(c_lp, d) + var * np.outer(d, d)
+            self._c_lp = c_lp + var * d
         else:
-            # later: about the current camera, so the published pose does not jump
+            # later: about the current camera, so the published pose does not jump; each
+            # step's error is d lambda times the step, correlated with the earlier ones as
+            # far as lambda has not been measured since
             self.offset = self.offset + (self.scale - new) * p_map
-            self._lever = self._lever + sigma * new * (p_map - self._last_p_map)
+            d = new * (p_map - self._last_p_map)
+            self._P_pp = self._P_pp + np.outer(d, self._c_lp) + np.outer(self._c_lp, d) + \
+                var * np.outer(d, d)
+            self._c_lp = self._c_lp + var * d
         self._settled = self._settled or math.sqrt(self.filter.var) < SETTLED_LOG_SIGMA
         self.scale = new
         self._last_p_map = p_map
@@ -349,7 +370,7 @@ class MetricScale:
         res.T_world_cam = T
         S = np.diag([s, s, s, 1.0, 1.0, 1.0])
         res.pose_cov = S @ res.pose_cov @ S
-        res.pose_cov[:3, :3] += np.outer(self._lever, self._lever)
+        res.pose_cov[:3, :3] += 0.5 * (self._P_pp + self._P_pp.T)
         if res.twist_cam is not None:
             twist = res.twist_cam.copy()
             twist[:3] *= s
