@@ -5,6 +5,7 @@ Console script::
     ekf-vo-run BAG -o EST.tum [--params config/ekf_vo.yaml] [--set name=value ...]
                [--image-topic T] [--info-topic T] [--gt-topic T] [--stats stats.csv]
                [--json summary.json] [--limit N] [--gt-bootstrap] [--quiet]
+               [--scale-odom-topic T]
 
 What it does, per image message of the bag (in log-time order):
 
@@ -14,8 +15,11 @@ What it does, per image message of the bag (in log-time order):
    ``/cam/camera_info``, else the first CameraInfo topic); ground truth is
    ``/ground_truth/pose`` when present. All overridable.
 2. parameters: the core (:class:`ekf_vo.config.VoConfig`) fields of the ``vo_node:
-   ros__parameters:`` section of ``--params`` (node-only fields such as ``odom_frame`` are
-   accepted and ignored), then ``--set name=value`` overrides, typed by the field type.
+   ros__parameters:`` section of ``--params`` (run_params.py; of the node-only fields, only
+   the extrinsic ``T_base_cam_xyz`` / ``_xyzw`` is used: the metric scale's gravity and
+   lever arm), then ``--set name=value`` overrides, typed by the field type. With
+   ``scale_source: odometry`` the bag's nav_msgs/Odometry topic (``--scale-odom-topic``,
+   default ``/scale_odom``) is read in log order with the images.
 3. images are decoded to grey with :func:`ekf_vo.bridge.image.decode_image` (as in vo_node);
    the stamp is the header stamp. Images before the first valid CameraInfo are skipped; a
    CameraInfo that changes the calibration re-creates the :class:`VisualOdometry` (its new
@@ -24,7 +28,7 @@ What it does, per image message of the bag (in log-time order):
    pose at the image stamp is passed as ``known_T_world_cam`` while the pipeline state is
    ``initialising`` (the EKFPnP paper's protocol: ground truth fixes the bootstrap scale).
 5. output: ``T_world_cam`` of the camera optical frame of the frames with ``result.ok`` (the
-   online trajectory a node would publish) as TUM text; per-frame statistics as CSV; a
+   online trajectory a node would publish; in metres with a scale source) as TUM text; per-frame statistics as CSV; a
    summary (frames, % tracked, frames/s, mean per-stage ms) and, when the bag has ground
    truth, :func:`ekf_vo.tools.evaluate.evaluate` (ATE after Sim(3), rotation error, %
    tracked) printed and written to ``--json``.
@@ -41,15 +45,12 @@ Library use (tests, benchmarks)::
 from __future__ import annotations
 
 import argparse
-import csv
-import dataclasses
 import json
 import logging
 import math
 import sys
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -57,196 +58,28 @@ import numpy as np
 
 from ..bridge.topics import TopicError, select_camera_topics, topic_listing
 from ..cli import HelpFormatter, UsageError, check_writable, entry_point
-from ..config import (ConfigError, NodeConfig, VoConfig, load_yaml_params, parse_value,
-                      split_params)
+from ..config import ConfigError, VoConfig
 from ..core.pipeline import TrackingState
 from ..core.stream import VoStream
 from ..io.bag import BagError
 from ..io.bag import topic_counts as _topic_counts
 from ..io.trajectory import GT_TOPIC
+from .run_params import base_extrinsic, make_config, parse_overrides
+from .run_summary import FrameStats, RunSummary, format_summary, write_stats_csv
 
 #: default nav_msgs/Odometry topic of scale_source odometry (vo_node subscribes scale_odom)
 SCALE_ODOM_TOPIC = '/scale_odom'
 
 logger = logging.getLogger(__name__)
 
-#: per-frame CSV columns before the per-stage timings (``ms_<stage>``) and the message
-STATS_COLUMNS = ('stamp_ns', 'stamp_s', 'state', 'ok', 'n_tracks', 'n_matches', 'n_inliers',
-                 'n_new_points', 'map_size')
+
 
 
 class RunError(RuntimeError):
     """The bag cannot be run (missing, no image or CameraInfo topic, bad parameters)."""
 
 
-@dataclass
-class FrameStats:
-    """One row of the per-frame statistics (one image fed to the core)."""
 
-    stamp_ns: int
-    state: str
-    ok: bool
-    n_tracks: int
-    n_matches: int
-    n_inliers: int
-    n_new_points: int
-    map_size: int
-    timings_ms: dict[str, float]
-    message: str = ''
-
-
-@dataclass
-class RunSummary:
-    """Result of :func:`run_bag`.
-
-    Attributes:
-        bag: the bag path.
-        image_topic, info_topic: topics used; gt_topic: ground-truth topic or None.
-        config: the core parameters used.
-        frames: images fed to the core.
-        frames_skipped: images not fed (before the first valid CameraInfo, undecodable).
-        frames_ok: frames with ``result.ok`` (poses in the trajectory).
-        pct_tracked: ``100 * frames_ok / frames`` [%].
-        wall_s: wall time of the loop (bag reading, decoding, core) [s].
-        fps: ``frames / wall_s`` [frames/s].
-        core_fps: frames per second of ``process()`` alone (sum of its 'total' timings).
-        stage_ms: mean duration per pipeline stage over the frames that ran it [ms].
-        n_resets: tracking resets inside the core (summed over VO instances).
-        n_camera_changes: calibration changes that re-created the VO.
-        local_map: the local map's keyframe and adjustment figures ({} when off).
-        scale: the metric scale's figures at the end (metric_scale.ScaleStatus).
-        est_stamps_s: (N,) stamps [s] of the trajectory.
-        est_T_world_cam: (N, 4, 4) camera optical frame -> world (VO world frame, VO scale).
-        frame_stats: per-frame statistics, in order.
-        eval: :class:`ekf_vo.tools.evaluate.EvalResult` or None (no ground truth / failed).
-        eval_error: why the evaluation failed, or None.
-        gt_bootstrap: whether ground truth was given to the bootstrap.
-    """
-
-    bag: str
-    image_topic: str
-    info_topic: str
-    gt_topic: str | None
-    config: VoConfig
-    frames: int = 0
-    frames_skipped: int = 0
-    frames_ok: int = 0
-    pct_tracked: float = 0.0
-    wall_s: float = 0.0
-    fps: float = 0.0
-    core_fps: float = 0.0
-    stage_ms: dict[str, float] = field(default_factory=dict)
-    n_resets: int = 0
-    n_camera_changes: int = 0
-    scale: dict = field(default_factory=dict)
-    local_map: dict = field(default_factory=dict)
-    est_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
-    #: (N, 6, 6) their published covariances (position, world rotation vector)
-    est_pose_cov: list = field(default_factory=list, repr=False)
-    est_T_world_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)),
-                                        repr=False)
-    frame_stats: list[FrameStats] = field(default_factory=list, repr=False)
-    eval: Any = None
-    eval_error: str | None = None
-    gt_bootstrap: bool = False
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-serialisable summary (no per-frame data)."""
-        out: dict[str, Any] = {
-            'bag': self.bag, 'image_topic': self.image_topic, 'info_topic': self.info_topic,
-            'gt_topic': self.gt_topic, 'frames': self.frames,
-            'frames_skipped': self.frames_skipped, 'frames_ok': self.frames_ok,
-            'pct_tracked': self.pct_tracked, 'wall_s': self.wall_s, 'fps': self.fps,
-            'core_fps': self.core_fps, 'stage_ms': dict(self.stage_ms),
-            'n_resets': self.n_resets, 'n_camera_changes': self.n_camera_changes,
-            'local_map': dict(self.local_map), 'scale': dict(self.scale),
-            'gt_bootstrap': self.gt_bootstrap,
-            'config': dataclasses.asdict(self.config),
-            'eval': self.eval.to_dict() if self.eval is not None else None,
-            'eval_error': self.eval_error,
-        }
-        return _finite(out)
-
-
-def _finite(obj: Any) -> Any:
-    """Replace NaN/inf floats by None (strict JSON)."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
-# ============================================================================ parameters
-def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
-    """``['name=value', ...]`` -> ``{name: typed value}`` for :class:`VoConfig` fields.
-
-    The type is the field's default type (bool, int, float, str; a tuple takes
-    comma-separated numbers).
-
-    Raises:
-        ConfigError: malformed item, unknown parameter or a value of the wrong type.
-    """
-    core = {f.name: f for f in dataclasses.fields(VoConfig)}
-    node = {f.name for f in dataclasses.fields(NodeConfig)}
-    out: dict[str, Any] = {}
-    for item in items:
-        name, sep, text = item.partition('=')
-        name = name.strip()
-        if not sep or not name:
-            raise ConfigError(f'--set expects name=value, got {item!r}')
-        if name not in core:
-            if name in node:
-                raise ConfigError(f'--set {name}: a vo_node ROS parameter, not used by the '
-                                  f'offline runner (core parameters only)')
-            raise ConfigError(f'--set {name}: unknown parameter (list them with '
-                              f'ekf-vo-params)')
-        out[name] = parse_value(name, text, core[name].default, '--set ')
-    return out
-
-
-def make_config(params: str | Path | Mapping[str, Any] | VoConfig | None = None,
-                overrides: Mapping[str, Any] | None = None) -> VoConfig:
-    """The core config from a params YAML path, a flat vo_node parameter mapping, a
-    VoConfig or None (defaults), with ``overrides`` (core field -> value) applied.
-
-    Raises:
-        ConfigError: unknown parameter, wrong type or out-of-range value.
-    """
-    if params is None:
-        cfg = VoConfig()
-    elif isinstance(params, VoConfig):
-        cfg = params
-    else:
-        if isinstance(params, (str, Path)):
-            if not Path(params).is_file():
-                raise ConfigError(f'params file not found: {params}')
-            values = load_yaml_params(str(params), 'vo_node')
-        else:
-            values = dict(params)
-        cfg, _node = split_params(values)
-    if overrides:
-        names = {f.name for f in dataclasses.fields(VoConfig)}
-        unknown = sorted(set(overrides) - names)
-        if unknown:
-            raise ConfigError(f'unknown core parameter(s): {unknown}')
-        cfg = VoConfig.from_mapping({**dataclasses.asdict(cfg), **dict(overrides)})
-    return cfg.validate()
-
-
-def base_extrinsic(params: str | Path | Mapping[str, Any] | VoConfig | None
-                   ) -> np.ndarray:
-    """T_base_cam (4x4) from vo_node's T_base_cam_xyz / _xyzw in the params YAML or
-    mapping (their defaults otherwise): the metric scale's gravity and lever arm."""
-    from ..core.frames import optical_to_body_extrinsic
-    node = NodeConfig()
-    if isinstance(params, (str, Path)):
-        node = split_params(load_yaml_params(str(params), 'vo_node'))[1]
-    elif isinstance(params, Mapping):
-        node = split_params(dict(params))[1]
-    return optical_to_body_extrinsic(node.T_base_cam_xyz, node.T_base_cam_xyzw)
 
 
 # ============================================================================ topics
@@ -328,12 +161,7 @@ def run_bag(bag: str | Path,
         raise RunError(str(exc)) from None
     image_topic, info_topic, gt_topic = select_topics(
         {t: m for t, (m, _) in counts.items()}, image_topic, info_topic, gt_topic)
-    odom_topic = None
-    if cfg.scale_source == 'odometry':
-        odom_topic = scale_odom_topic or SCALE_ODOM_TOPIC
-        if counts.get(odom_topic, ('', 0))[0] != 'nav_msgs/msg/Odometry':
-            raise RunError(f'scale_source odometry: the bag has no nav_msgs/Odometry topic '
-                           f'{odom_topic} (give --scale-odom-topic)')
+    odom_topic = _scale_odom_topic(cfg, counts, scale_odom_topic)
     gt_ns, gt_T = _ground_truth(bag, gt_topic, gt_bootstrap)
     summary = RunSummary(str(bag), image_topic, info_topic, gt_topic, cfg,
                          gt_bootstrap=gt_bootstrap)
@@ -357,6 +185,15 @@ def run_bag(bag: str | Path,
         raise RunError(f'{bag}: no image was processed ({why}; image topic {image_topic} '
                        f'[{counts[image_topic][0]}], CameraInfo topic {info_topic})')
     _summarise(summary, stamps_s, poses)
+    _write_outputs(summary, out_tum, out_cov, stats_csv)
+    if gt_topic is not None:
+        _evaluate_into(summary, gt_ns, gt_T, max_time_diff_s)
+    return summary
+
+
+def _write_outputs(summary: RunSummary, out_tum: str | Path | None,
+                   out_cov: str | Path | None, stats_csv: str | Path | None) -> None:
+    """The trajectory (TUM), its covariances and the per-frame CSV, where asked."""
     if out_tum is not None:
         from ..io.trajectory import write_tum
         write_tum(out_tum, summary.est_stamps_s, summary.est_T_world_cam)
@@ -366,9 +203,19 @@ def run_bag(bag: str | Path,
                           np.array(summary.est_pose_cov).reshape(-1, 6, 6))
     if stats_csv is not None:
         write_stats_csv(stats_csv, summary.frame_stats)
-    if gt_topic is not None:
-        _evaluate_into(summary, gt_ns, gt_T, max_time_diff_s)
-    return summary
+
+
+def _scale_odom_topic(cfg: VoConfig, counts: Mapping[str, tuple[str, int]],
+                      given: str | None) -> str | None:
+    """The nav_msgs/Odometry topic scale_source odometry reads (None for other sources);
+    RunError when the bag lacks it."""
+    if cfg.scale_source != 'odometry':
+        return None
+    topic = given or SCALE_ODOM_TOPIC
+    if counts.get(topic, ('', 0))[0] != 'nav_msgs/msg/Odometry':
+        raise RunError(f'scale_source odometry: the bag has no nav_msgs/Odometry topic '
+                       f'{topic} (give --scale-odom-topic)')
+    return topic
 
 
 def _ground_truth(bag: Path, gt_topic: str | None, gt_bootstrap: bool
@@ -396,10 +243,8 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
     of `summary`. `known_poses`: (gt stamps ns, gt poses, tolerance ns) for the
     ground-truth bootstrap, or None. Returns the stream and the (stamp s, T_world_cam)
     of ok frames."""
-    from ..bridge import (ConversionError, camera_info_to_dict, odometry_to_pose,
-                          stamp_to_ns, validate_camera_info)
+    from ..bridge import ConversionError, stamp_to_ns
     from ..bridge.image import decode_image
-    from ..core.camera import CameraModelError
     from ..core.stream import Rejection
     from ..io.bag import iter_bag
 
@@ -422,10 +267,7 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
             summary.frames_skipped += 1
             return
         summary.frames += 1
-        summary.frame_stats.append(FrameStats(
-            stamp_ns, res.state.value, bool(res.ok), int(res.n_tracks),
-            int(res.n_matches), int(res.n_inliers), int(res.n_new_points),
-            int(res.map_size), dict(res.timings_ms), res.message))
+        summary.frame_stats.append(FrameStats.of(stamp_ns, res))
         if res.ok and res.T_world_cam is not None:
             stamps_s.append(stamp_ns * 1e-9)
             poses.append(np.asarray(res.T_world_cam, dtype=np.float64))
@@ -445,25 +287,13 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
     topics = [summary.image_topic, summary.info_topic] + ([odom_topic] if odom_topic else [])
     for topic, msgtype, log_ns, msg in iter_bag(bag, topics):
         if topic == odom_topic:
-            try:
-                stream.add_scale_odometry(stamp_to_ns(msg.header.stamp),
-                                          odometry_to_pose(msg)[0][:3, 3])
-            except ConversionError as exc:
-                logger.warning('skipping %s message at %d ns: %s', topic, log_ns, exc)
+            _add_scale_odometry(stream, topic, log_ns, msg)
             continue
         if topic == summary.info_topic:
-            info_stamp = None
-            try:
-                info_stamp = stamp_to_ns(msg.header.stamp)
-                info = camera_info_to_dict(msg)
-                validate_camera_info(info)
-                stream.add_camera_info(info_stamp, info)
-            except (ConversionError, CameraModelError, ValueError) as exc:
-                if info_stamp is not None:
-                    stream.reject_camera_info(info_stamp)
-                if not warned_info:
-                    logger.warning('unusable CameraInfo on %s: %s', topic, exc)
-                    warned_info = True
+            problem = _add_camera_info(stream, msg)
+            if problem and not warned_info:
+                logger.warning('unusable CameraInfo on %s: %s', topic, problem)
+                warned_info = True
             flush(force=False)
             continue
         if limit is not None and summary.frames + len(held) >= limit:
@@ -493,6 +323,35 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
     summary.local_map = stream.local_map_stats()
     summary.scale = stream.scale_status().as_status()
     return stream, stamps_s, poses
+
+
+def _add_camera_info(stream: VoStream, msg: Any) -> str:
+    """A CameraInfo message into the stream; '' or why it was unusable (its stamp then
+    rejects its image, core/pairing.py)."""
+    from ..bridge import (ConversionError, camera_info_to_dict, stamp_to_ns,
+                          validate_camera_info)
+    from ..core.camera import CameraModelError
+    info_stamp = None
+    try:
+        info_stamp = stamp_to_ns(msg.header.stamp)
+        info = camera_info_to_dict(msg)
+        validate_camera_info(info)
+        stream.add_camera_info(info_stamp, info)
+    except (ConversionError, CameraModelError, ValueError) as exc:
+        if info_stamp is not None:
+            stream.reject_camera_info(info_stamp)
+        return str(exc)
+    return ''
+
+
+def _add_scale_odometry(stream: VoStream, topic: str, log_ns: int, msg: Any) -> None:
+    """An external odometry message's position into the stream (scale_source odometry)."""
+    from ..bridge import ConversionError, odometry_to_pose, stamp_to_ns
+    try:
+        stream.add_scale_odometry(stamp_to_ns(msg.header.stamp),
+                                  odometry_to_pose(msg)[0][:3, 3])
+    except ConversionError as exc:
+        logger.warning('skipping %s message at %d ns: %s', topic, log_ns, exc)
 
 
 def _summarise(summary: RunSummary, stamps_s: list[float], poses: list[np.ndarray]
@@ -529,52 +388,6 @@ def _evaluate_into(summary: RunSummary, gt_ns: np.ndarray, gt_T: np.ndarray,
         summary.eval_error = str(exc)
 
 
-def write_stats_csv(path: str | Path, rows: Sequence[FrameStats]) -> None:
-    """Per-frame CSV: :data:`STATS_COLUMNS`, ``ms_<stage>`` for every stage seen (empty when
-    a frame did not run it), ``message``."""
-    stages: list[str] = []
-    for row in rows:
-        for key in row.timings_ms:
-            if key not in stages:
-                stages.append(key)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open('w', newline='', encoding='utf-8') as f:
-        w = csv.writer(f)
-        w.writerow([*STATS_COLUMNS, *(f'ms_{s}' for s in stages), 'message'])
-        for r in rows:
-            w.writerow([r.stamp_ns, f'{r.stamp_ns * 1e-9:.9f}', r.state, int(r.ok), r.n_tracks,
-                        r.n_matches, r.n_inliers, r.n_new_points, r.map_size,
-                        *(f'{r.timings_ms[s]:.3f}' if s in r.timings_ms else ''
-                          for s in stages), r.message])
-
-
-def format_summary(s: RunSummary) -> str:
-    """Human-readable report of a run."""
-    lines = [
-        f'bag            {s.bag}',
-        f'topics         {s.image_topic}, {s.info_topic}, ground truth: {s.gt_topic or "none"}',
-        f'frames         {s.frames} processed, {s.frames_skipped} skipped, '
-        f'{s.frames_ok} tracked ({s.pct_tracked:.1f} %)',
-        f'speed          {s.fps:.1f} frames/s overall, {s.core_fps:.1f} frames/s core',
-        'stage ms       ' + ', '.join(f'{k} {v:.2f}' for k, v in s.stage_ms.items()),
-        f'resets         {s.n_resets} (calibration changes: {s.n_camera_changes})',
-        *([f"scale          {s.scale['scale']:.4f} m per map unit +- "
-           f"{s.scale['scale_sigma_pct']:.1f} % ({s.scale['scale_source']}, "
-           f"{s.scale['scale_updates']} measurements, {s.scale['scale_state']})"]
-          if s.scale.get('scale_source', 'none') != 'none' else []),
-    ]
-    if s.gt_bootstrap:
-        lines.append('bootstrap      ground truth (known_T_world_cam while initialising)')
-    if s.eval is not None:
-        from .evaluate import format_table
-        lines += ['', format_table(s.eval)]
-    elif s.eval_error:
-        lines.append(f'evaluation     failed: {s.eval_error}')
-    return '\n'.join(lines)
-
-
-# ============================================================================ CLI
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='ekf-vo-run', description='Run ekf_vo offline on a rosbag2 bag (no ROS needed), '
