@@ -19,7 +19,9 @@ extrinsic, is evaluated the same way (ATE and scale error; no NEES).
 
 Per run: frames published, scale error (the Sim(3) fit's scale, est/true - 1), ATE after
 SE(3) alignment (no scale fitted) and after Sim(3), both in % of the path, and the 6-DoF
-pose NEES (rigid alignment at the first published pose; 6 ideal, 22.46 the 99.9 % bound).
+pose NEES (rigid alignment at the first published pose; 6 ideal, 22.46 the 99.9 % bound),
+and the twist NEES, linear and angular (3 ideal each; the ground truth's central
+differences, tools/consistency.twist_nees).
 Nothing here uses ground truth in the estimator.
 """
 from __future__ import annotations
@@ -44,7 +46,7 @@ SLIP_SHARES = (0.05, 0.2)
 
 
 def run_one(bag: Path, params: Any, overrides: dict, seed: int) -> dict[str, Any]:
-    from ekf_vo.tools.consistency import pose_nees
+    from ekf_vo.tools.consistency import pose_nees, twist_nees
     from ekf_vo.tools.run import run_bag
     s = run_bag(bag, params, overrides, seed=seed)
     ev = s.eval
@@ -53,7 +55,8 @@ def run_one(bag: Path, params: Any, overrides: dict, seed: int) -> dict[str, Any
            'scale_error_pct': None if ev is None else float(ev.scale_error_pct),
            'ate_se3_pct': None if ev is None else float(ev.ate_se3_pct_of_path),
            'ate_sim3_pct': None if ev is None else float(ev.ate_sim3_pct_of_path),
-           'pose_nees_mean': None, 'pose_nees_median': None, 'pose_nees_pct_above': None}
+           'pose_nees_mean': None, 'pose_nees_median': None, 'pose_nees_pct_above': None,
+           'twist_nees_linear_mean': None, 'twist_nees_angular_mean': None}
     if ev is not None and s.est_pose_cov:
         from ekf_vo.io.bag import read_ground_truth
         gt_ns, gt_T = read_ground_truth(bag)
@@ -63,6 +66,10 @@ def run_one(bag: Path, params: Any, overrides: dict, seed: int) -> dict[str, Any
                           np.array(s.est_pose_cov))
             out.update(pose_nees_mean=n.mean, pose_nees_median=n.median,
                        pose_nees_pct_above=n.pct_above_999)
+            t = twist_nees(gt_ns * 1e-9, gt_T, stamps, np.array(s.est_twist),
+                           np.array(s.est_twist_cov))
+            out.update(twist_nees_linear_mean=t.linear_mean,
+                       twist_nees_angular_mean=t.angular_mean)
         except ValueError as exc:
             out['nees_error'] = str(exc)
     return out
@@ -142,7 +149,8 @@ def dds_run(bag: Path, params: list[str], work: Path, T_base_cam_xyz=(0.0, 0.0, 
     return {'seed': 'dds', 'frames': len(gt_ns), 'pct_published': ev.pct_tracked,
             'resets': 0, 'scale': {}, 'scale_error_pct': ev.scale_error_pct,
             'ate_se3_pct': ev.ate_se3_pct_of_path, 'ate_sim3_pct': ev.ate_sim3_pct_of_path,
-            'pose_nees_mean': None, 'pose_nees_median': None, 'pose_nees_pct_above': None}
+            'pose_nees_mean': None, 'pose_nees_median': None, 'pose_nees_pct_above': None,
+            'twist_nees_linear_mean': None, 'twist_nees_angular_mean': None}
 
 
 def dds(work: Path) -> dict[str, list]:
@@ -171,8 +179,9 @@ def _fmt(v: Any, spec: str = '.2f') -> str:
 
 def table(results: dict[str, list]) -> str:
     rows = ['| case | seed | published % | resets | scale error % | ATE SE(3) % | '
-            'ATE Sim(3) % | pose NEES mean / median / % > bound | scale sigma % |',
-            '|---|---|---|---|---|---|---|---|---|']
+            'ATE Sim(3) % | pose NEES mean / median / % > bound | twist NEES lin / ang | '
+            'scale sigma % |',
+            '|---|---|---|---|---|---|---|---|---|---|']
     for name, runs in results.items():
         for r in runs:
             rows.append(
@@ -181,6 +190,8 @@ def table(results: dict[str, list]) -> str:
                 f"{_fmt(r['ate_sim3_pct'], '.3f')} | {_fmt(r['pose_nees_mean'], '.1f')} / "
                 f"{_fmt(r['pose_nees_median'], '.1f')} / "
                 f"{_fmt(r['pose_nees_pct_above'], '.0f')} | "
+                f"{_fmt(r['twist_nees_linear_mean'], '.1f')} / "
+                f"{_fmt(r['twist_nees_angular_mean'], '.1f')} | "
                 f"{_fmt(r['scale'].get('scale_sigma_pct'), '.1f')} |")
     return '\n'.join(rows)
 

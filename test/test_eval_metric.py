@@ -146,3 +146,25 @@ def test_cli_se3_metric_line_pose_nees_json_and_plot(tmp_path: Path) -> None:
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert 'metric (SE(3)' not in proc.stdout and 'pose NEES' not in proc.stdout
+
+
+def test_twist_errors_drawn_from_the_covariance_give_a_twist_nees_of_three() -> None:
+    """A circle at 1 m/s and 0.5 rad/s, sampled at 100 Hz; the estimated twist is the
+    true one plus noise drawn from its stated covariance: both NEES means are ~3."""
+    from ekf_vo.tools.consistency import gt_twist, twist_nees
+    rng = np.random.default_rng(4)
+    t = np.arange(0, 20, 0.01)
+    yaw = 0.5 * t
+    gt = np.tile(np.eye(4), (len(t), 1, 1))
+    gt[:, :3, :3] = geo.rotvecs_to_matrices(np.column_stack((0 * t, 0 * t, yaw)))
+    gt[:, 0, 3], gt[:, 1, 3] = 2 * np.sin(yaw), 2 * (1 - np.cos(yaw))
+    truth = np.array([gt_twist(t, gt, k) for k in range(1, len(t) - 1)])
+    assert np.allclose(truth[:, :3], [1.0, 0.0, 0.0], atol=1e-3)    # forward in the body
+    assert np.allclose(truth[:, 3:], [0.0, 0.0, 0.5], atol=1e-3)
+    cov = np.tile(np.diag([0.01, 0.02, 0.005, 1e-4, 2e-4, 5e-5]), (len(truth), 1, 1))
+    est = truth + rng.normal(size=truth.shape) * np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    r = twist_nees(t, gt, t[1:-1], est, cov, max_time_diff_s=1e-4)
+    assert r.n_frames == len(truth)
+    assert 2.7 < r.linear_mean < 3.3 and 2.7 < r.angular_mean < 3.3
+    too_small = twist_nees(t, gt, t[1:-1], est, cov / 4, max_time_diff_s=1e-4)
+    assert too_small.linear_mean > 10

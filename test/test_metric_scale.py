@@ -120,6 +120,7 @@ def test_published_odometry_waits_for_the_scale_then_never_jumps():
                               res.twist_cam.copy(), scale.points(np.array([[0, 0, 0.8 * t]]))))
         else:
             assert 'waiting for the metric scale' in res.message
+            assert res.health == 'degraded'          # ~/status: WARN, with the reason
     assert first_ok is not None and first_ok >= 30           # a window of 1 s first
     assert scale.status().state == 'metric'
     assert scale.scale == pytest.approx(0.5, rel=0.02)

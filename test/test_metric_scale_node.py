@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from nav_msgs.msg import Odometry
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -61,6 +61,9 @@ def test_vo_node_publishes_metres_from_a_wheel_odometry(tmp_path):
     assert np.linalg.norm(base[-1] - base[0]) == pytest.approx(
         np.linalg.norm(cam[-1] - cam[0]), rel=0.01)
     assert offline.eval is not None and abs(offline.eval.scale_error_pct) < 3.0
+    waiting = [a.status[0] for a in status if 'waiting for the metric scale' in
+               a.status[0].message]
+    assert waiting and all(st.level == DiagnosticStatus.WARN for st in waiting)
     values = {kv.key: kv.value for kv in status[-1].status[0].values}
     assert values['scale_source'] == 'odometry'
     assert values['scale_state'] in ('metric', 'coasting')

@@ -310,6 +310,8 @@ class MetricScale:
             # odometry in metres was asked for: nothing is published in map units
             res.ok = False
             res.message = f'tracking; waiting for the metric scale ({self.source})'
+            # ~/status: WARN with the reason (DEGRADED), not an error
+            res.health, res.health_reason = 'degraded', res.message
             return
         self._convert(res)
 

@@ -18,6 +18,10 @@ rigid alignment at the same first frame, T_align = T_gt,0 T_est,0^-1 (no scale),
     NEES_k = e_k^T (A Sigma_k A^T)^-1 e_k,  A = diag(R_align, R_align)      (6 dof)
 
 mean 6 when honest, 0.1 % of the frames above the chi-square(6) 99.9 % bound, 22.46.
+
+:func:`twist_nees` checks the published twist (what robot_localization fuses in
+differential mode) against the ground truth's central differences, linear and angular
+parts separately (3 dof each; the linear one needs a metric estimate).
 """
 from __future__ import annotations
 
@@ -167,6 +171,71 @@ def pose_nees(gt_stamps: np.ndarray, gt_T: np.ndarray, est_stamps: np.ndarray,
     return PoseNees(float(np.mean(nees)), float(np.median(nees)),
                     float(100 * np.mean(nees > CHI2_6DOF_999)), len(nees),
                     len(cov) - len(nees), stamps[keep], nees)
+
+
+@dataclass
+class TwistNees:
+    """NEES of the published twist (camera frame) against the ground truth's, 3 dof each
+    for the linear [m/s] and angular [rad/s] parts."""
+
+    linear_mean: float
+    linear_median: float
+    linear_pct_above_999: float   #: % of frames above CHI2_3DOF_999
+    angular_mean: float
+    angular_median: float
+    angular_pct_above_999: float
+    n_frames: int
+
+    def to_dict(self) -> dict:
+        return {'twist_nees_linear_mean': self.linear_mean,
+                'twist_nees_linear_median': self.linear_median,
+                'twist_nees_linear_pct_above_99_9': self.linear_pct_above_999,
+                'twist_nees_angular_mean': self.angular_mean,
+                'twist_nees_angular_median': self.angular_median,
+                'twist_nees_angular_pct_above_99_9': self.angular_pct_above_999,
+                'twist_nees_frames': self.n_frames}
+
+
+def gt_twist(gt_stamps: np.ndarray, gt_T: np.ndarray, k: int) -> np.ndarray | None:
+    """(v, w) of the ground truth at sample k in its camera frame [m/s, rad/s], by central
+    differences of its neighbours (None at the ends)."""
+    if k < 1 or k >= len(gt_stamps) - 1:
+        return None
+    dt = float(gt_stamps[k + 1] - gt_stamps[k - 1])
+    if not dt > 0:
+        return None
+    T0, T1 = gt_T[k - 1], gt_T[k + 1]
+    v = gt_T[k][:3, :3].T @ (T1[:3, 3] - T0[:3, 3]) / dt
+    w = geo.quat_to_rotvec(geo.matrix_to_quat(T0[:3, :3].T @ T1[:3, :3])) / dt
+    return np.concatenate([v, w])
+
+
+def twist_nees(gt_stamps: np.ndarray, gt_T: np.ndarray, est_stamps: np.ndarray,
+               twist: np.ndarray, twist_cov: np.ndarray,
+               max_time_diff_s: float = 0.01) -> TwistNees:
+    """NEES of a metric estimate's twist (n,6) (v, w in the camera frame, as
+    FrameResult.twist_cam) with its covariances (n,6,6), against central differences of
+    the ground truth (which should be sampled at least at the frame rate). The angular
+    part is scale-free; the linear part needs metres. Raises ValueError when nothing
+    associates."""
+    i_gt, j = _associate(np.asarray(gt_stamps, float), np.asarray(est_stamps, float),
+                         max_time_diff_s)
+    lin, ang = [], []
+    for i, k in zip(i_gt, j):
+        truth = gt_twist(gt_stamps, gt_T, int(i))
+        C = twist_cov[k]
+        if truth is None or not _usable(C):
+            continue
+        e = truth - twist[k]
+        lin.append(float(e[:3] @ np.linalg.solve(C[:3, :3], e[:3])))
+        ang.append(float(e[3:] @ np.linalg.solve(C[3:, 3:], e[3:])))
+    if not lin:
+        raise ValueError('twist NEES: no estimated twist matches the ground truth')
+    lin, ang = np.array(lin), np.array(ang)
+    return TwistNees(float(lin.mean()), float(np.median(lin)),
+                     float(100 * np.mean(lin > CHI2_3DOF_999)), float(ang.mean()),
+                     float(np.median(ang)), float(100 * np.mean(ang > CHI2_3DOF_999)),
+                     len(lin))
 
 
 def plot_rotation_nees(r: RotationNees, out_png: str | Path, title: str = '') -> Path:

@@ -272,6 +272,8 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
             stamps_s.append(stamp_ns * 1e-9)
             poses.append(np.asarray(res.T_world_cam, dtype=np.float64))
             summary.est_pose_cov.append(np.asarray(res.pose_cov, dtype=np.float64))
+            summary.est_twist.append(np.asarray(res.twist_cam, dtype=np.float64))
+            summary.est_twist_cov.append(np.asarray(res.twist_cov, dtype=np.float64))
 
     def flush(force: bool) -> None:
         """Process the held images whose CameraInfo has come (force: the next image

@@ -90,6 +90,9 @@ class RunSummary:
     est_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     #: (N, 6, 6) their published covariances (position, world rotation vector)
     est_pose_cov: list = field(default_factory=list, repr=False)
+    #: (N, 6) their twists (v, w in the camera frame) and (N, 6, 6) its covariances
+    est_twist: list = field(default_factory=list, repr=False)
+    est_twist_cov: list = field(default_factory=list, repr=False)
     est_T_world_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)),
                                         repr=False)
     frame_stats: list[FrameStats] = field(default_factory=list, repr=False)
