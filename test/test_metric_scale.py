@@ -235,3 +235,16 @@ def test_the_scale_error_does_not_cancel_on_a_loop_once_measured():
     end = np.trace(res.pose_cov[:3, :3])
     floor = np.trace(np.eye(3) * 1e-4) * scale.scale ** 2     # the EKF's own part
     assert end - floor > 0.1 * (halfway - floor) > 0
+
+
+def test_bad_scale_odometry_is_rejected_and_counted():
+    from ekf_vo.core.stream import VoStream
+    stream = VoStream(_cfg(scale_source='odometry'))
+    assert stream.add_scale_odometry(1_000, np.zeros(3)) is None
+    r = stream.add_scale_odometry(2_000, np.array([np.nan, 0.0, 0.0]))
+    assert r is not None and r.key == 'bad_scale_odom'
+    r = stream.add_scale_odometry(500, np.zeros(3))
+    assert r is not None and r.key == 'scale_odom_out_of_order'
+    assert stream.add_scale_odometry(3_000, np.ones(3)) is None
+    assert stream.counters['bad_scale_odom'] == 1
+    assert stream.counters['scale_odom_out_of_order'] == 1

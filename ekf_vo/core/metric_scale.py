@@ -140,12 +140,14 @@ class OdometryWindows:
         self._frames: list = []       # (stamp_ns, p_cam_map, base lever in world [m])
         self.restart()
 
-    def add_odometry(self, stamp_ns: int, xyz: np.ndarray) -> None:
+    def add_odometry(self, stamp_ns: int, xyz: np.ndarray) -> bool:
+        """False (not used) when `stamp_ns` is not after the last one."""
         if self._odom and stamp_ns <= self._odom[-1][0]:
-            return                             # out of order or repeated: not used
+            return False
         self._odom.append((int(stamp_ns), np.asarray(xyz, float)))
         while self._odom and self._odom[0][0] < stamp_ns - ODOM_HISTORY_S * 1e9:
             self._odom.popleft()
+        return True
 
     def restart(self) -> None:
         """A new map (new units): the frames so far no longer compare."""
@@ -258,8 +260,9 @@ class MetricScale:
         self.last_frame_ns: int | None = None
         self.odometry.restart()
 
-    def add_odometry(self, stamp_ns: int, xyz: np.ndarray) -> None:
-        self.odometry.add_odometry(stamp_ns, xyz)
+    def add_odometry(self, stamp_ns: int, xyz: np.ndarray) -> bool:
+        """An external odometry's position; False when its stamp is not after the last."""
+        return self.odometry.add_odometry(stamp_ns, xyz)
 
     @property
     def bias_var(self) -> float:

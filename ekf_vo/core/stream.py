@@ -211,13 +211,20 @@ class VoStream:
                 self.scale.apply(result, vo.map.X_world, vo.map.n_obs)
         return result
 
-    def add_scale_odometry(self, stamp_ns: int, xyz: np.ndarray) -> None:
+    def add_scale_odometry(self, stamp_ns: int, xyz: np.ndarray) -> Rejection | None:
         """An external odometry's position (metres, its own frame) at `stamp_ns`, for
-        scale_source odometry (metric_scale.py). Non-finite positions are ignored."""
+        scale_source odometry (metric_scale.py). None = used; a non-finite position or a
+        stamp not after the last one is rejected (and counted)."""
         xyz = np.asarray(xyz, float)
-        if xyz.shape == (3,) and np.all(np.isfinite(xyz)):
-            with self._lock:
-                self.scale.add_odometry(int(stamp_ns), xyz)
+        if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
+            return self._reject('bad_scale_odom', 'scale_odom with a non-finite position: '
+                                'ignored')
+        with self._lock:
+            used = self.scale.add_odometry(int(stamp_ns), xyz)
+        if not used:
+            return self._reject('scale_odom_out_of_order', 'scale_odom stamp not after the '
+                                'last one: ignored')
+        return None
 
     def scale_status(self) -> ScaleStatus:
         return self.scale.status()

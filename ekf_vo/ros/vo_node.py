@@ -189,7 +189,9 @@ class VoNode(Node):
         except conv.ConversionError as exc:
             self._warn('bad_scale_odom', f'scale_odom ignored: {exc}')
             return
-        self.stream.add_scale_odometry(stamp_ns, T[:3, 3])
+        rejected = self.stream.add_scale_odometry(stamp_ns, T[:3, 3])
+        if rejected is not None:
+            self._warn(rejected.key, rejected.text)
 
     def _on_image(self, msg: Image) -> None:
         self._enqueue(msg, conv.IMAGE, 'image')

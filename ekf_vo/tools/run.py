@@ -350,10 +350,13 @@ def _add_scale_odometry(stream: VoStream, topic: str, log_ns: int, msg: Any) -> 
     """An external odometry message's position into the stream (scale_source odometry)."""
     from ..bridge import ConversionError, odometry_to_pose, stamp_to_ns
     try:
-        stream.add_scale_odometry(stamp_to_ns(msg.header.stamp),
-                                  odometry_to_pose(msg)[0][:3, 3])
+        rejected = stream.add_scale_odometry(stamp_to_ns(msg.header.stamp),
+                                             odometry_to_pose(msg)[0][:3, 3])
     except ConversionError as exc:
         logger.warning('skipping %s message at %d ns: %s', topic, log_ns, exc)
+        return
+    if rejected is not None:
+        logger.warning('skipping %s message at %d ns: %s', topic, log_ns, rejected.text)
 
 
 def _summarise(summary: RunSummary, stamps_s: list[float], poses: list[np.ndarray]
