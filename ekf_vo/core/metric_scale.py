@@ -1,42 +1,39 @@
 """Metric scale: the map's units in metres, with an uncertainty (docs/method.md §16).
 
 A monocular map has an arbitrary scale. With `scale_source` other than `none`, the
-published odometry is in metres: p_odom = s * p_map + o, where s = exp(lambda) is the
-metres per map unit and o an offset. lambda is filtered here, outside the 13-state EKF
-(which keeps running in map units, so the tracker, the map and the adjustment are
-unchanged): a 1-state Kalman filter. Its prediction grows lambda's variance with the
-distance travelled and the angle turned (monocular scale drift: `scale_drift_per_sqrt_m`,
+published odometry is in metres: p_odom = s * p_map + o, with s = exp(lambda) metres per
+map unit and o an offset. lambda is filtered here, beside the 13-state EKF, which keeps
+running in map units (the tracker, the map and the adjustment are unchanged).
+
+The filter has one state. Its prediction grows lambda's variance with the distance
+travelled and the angle turned (monocular scale drift: `scale_drift_per_sqrt_m`,
 `scale_drift_per_sqrt_rad`), and by REBOOTSTRAP_LOG_SIGMA^2 at a re-bootstrap. Its
-measurements come from
+measurements, each weighted by a Huber rule on its normalised innovation (a wrong plane
+or a slip moves the scale by a bounded step), come from
 - `camera_height`: the camera's height above the ground plane fitted to map points
   (ground_plane.py) against `camera_height_m`: z = log(camera_height_m / h_map);
-- `odometry`: an external odometry (wheel odometry): over windows of at least
+- `odometry`: an external (wheel) odometry: over windows of at least
   `scale_odom_window_s` and `scale_odom_min_distance_m`, the distance it travelled against
-  ours: z = log of the median of
-  the sub-segments' ratios (a slipping wheel spoils a minority of sub-segments).
-Each measurement is weighted by a Huber rule on its normalised innovation, so a wrong
-plane or a slip episode moves the scale by at most a bounded step.
+  ours: z = log of the median of the sub-segments' ratios.
 
-Until the first measurement nothing is published (the frame is not `ok`; `~/status` says
-the scale is 'waiting'): odometry in metres was asked for. The scale is applied without
-jumps once settled: until the filter's sigma first falls
-below SETTLED_LOG_SIGMA, a new scale rescales the whole path and map about the world
-origin (the covariance published meanwhile, sigma * s * p, covers that change) — and
-whenever the sigma rises above UNSETTLED_LOG_SIGMA again (a re-bootstrap, whose new map
-has units carried over from the speed; a long turn without measurements), the path since
-then about the camera's position at that moment, until the scale settles again; after,
-every change rescales about the current camera (o absorbs it), so the published pose is
-continuous and the published map, transformed by the same (s, o), stays consistent with
-it. The pose covariance carries the scale's uncertainty: position s^2 P_pp plus the
-covariance of the position error the scale made, e_p, kept as a Schmidt consider term
-with its cross-covariance c with lambda: each step d adds d lambda * d (so e_p's
-covariance grows by d c^T + c d^T + var d d^T and c by var d), and each scale
-measurement shrinks c by the factor it shrinks lambda's variance: errors made before a
-measurement no longer cancel those made after it (on a loop, a fully correlated model
-would let the covariance shrink back as the robot returns). The twist's linear part
-gets sigma_lambda^2 v v^T. For
-`camera_height`, the height's own uncertainty (camera_height_sigma_m) is a bias that no
-averaging removes: it is added to sigma_lambda as a consider term.
+Publishing. Until the first measurement nothing is published (the frame is not `ok`;
+`~/status` says 'waiting'): metres were asked for. Until lambda's sigma first falls below
+SETTLED_LOG_SIGMA, a new scale rescales the whole path and map about the world origin;
+whenever it rises above UNSETTLED_LOG_SIGMA again (a re-bootstrap, a long turn without
+measurements), the path since then about the camera's position at that moment (the
+pivot). Once settled, every change rescales about the current camera (o absorbs it): the
+published pose is continuous, and the map, transformed by the same (s, o), stays
+consistent with it.
+
+Covariance. Position: s^2 P_pp plus the covariance of e_p, the position error the scale
+has made, a Schmidt consider term kept with its cross-covariance c to lambda: each
+published step d adds d_lambda * d to e_p (its covariance grows by d c^T + c d^T +
+var d d^T, c by var d), and each measurement shrinks c by the factor it shrinks lambda's
+variance, so errors made before it no longer cancel those after (on a loop, a fully
+correlated model would let the covariance shrink back as the robot returns). Twist: the
+linear part is scaled and gains sigma_lambda^2 v v^T. With `camera_height`, the height's
+own uncertainty (camera_height_sigma_m) is a bias no averaging removes: it is added to
+the published sigma.
 
 Pure numpy; no ROS types. Stamps are integer nanoseconds.
 """
