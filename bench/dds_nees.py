@@ -23,33 +23,36 @@ from .common import machine, write_json
 IMAGE, INFO = '/camera/image_raw/compressed', '/camera/camera_info'
 
 
-def _record(bag: Path, work: Path) -> list:
+def record_odometry(bag: Path, node_args: list[str], topics: list[str], work: Path,
+                    domain: int) -> list:
+    """Start a vo_node (`node_args`), play `topics` of `bag` into it in real time, and
+    return every nav_msgs/Odometry it published on /odom (its log in `work`)."""
     from nav_msgs.msg import Odometry
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from ekf_vo.ros.harness import Harness, NodeProcess, domain_id_for
+    from ekf_vo.ros.harness import Harness, NodeProcess
     from ekf_vo.ros.player import play_bag
-    domain = domain_id_for(__name__)
-    node = NodeProcess('ekf_vo.ros.vo_node', [
-        '-p', 'image_transport:=compressed', '-r', 'image:=/camera/image_raw',
-        '-r', 'camera_info:=' + INFO, '-r', 'odom:=/odom', '-p', 'queue_policy:=all'],
-        domain, work / 'vo_node.log')
+    node = NodeProcess('ekf_vo.ros.vo_node', node_args, domain, work / 'vo_node.log')
     node.wait_for_output('vo_node ready')
     h = Harness(domain)
     try:
         odom = h.record(Odometry, '/odom', QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
                                                       history=HistoryPolicy.KEEP_ALL))
-        play_bag(h.node, bag, rate=1.0, topics=[IMAGE, INFO], clock=False, wait_for=['*'],
+        play_bag(h.node, bag, rate=1.0, topics=topics, clock=False, wait_for=['*'],
                  wait_timeout_s=20.0)
-        n_last, quiet = -1, 0
-        while quiet < 3:                    # until the answers stop coming
-            h.spin_for(0.5)
-            quiet = quiet + 1 if len(odom) == n_last else 0
-            n_last = len(odom)
+        h.spin_until_quiet(odom)            # until the answers stop coming
     finally:
         h.close()
         node.stop()
     return list(odom)
+
+
+def _record(bag: Path, work: Path) -> list:
+    from ekf_vo.ros.harness import domain_id_for
+    return record_odometry(bag, [
+        '-p', 'image_transport:=compressed', '-r', 'image:=/camera/image_raw',
+        '-r', 'camera_info:=' + INFO, '-r', 'odom:=/odom', '-p', 'queue_policy:=all'],
+        [IMAGE, INFO], work, domain_id_for(__name__))
 
 
 def camera_poses(msgs: list, T_bc: np.ndarray | None = None

@@ -130,15 +130,11 @@ def dds_run(bag: Path, params: list[str], work: Path, T_base_cam_xyz=(0.0, 0.0, 
             ) -> dict[str, Any]:
     """Play `bag` into a fresh vo_node (extra `-p` parameters `params`) and evaluate the
     odometry it publishes."""
-    from nav_msgs.msg import Odometry
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-
-    from bench.dds_nees import camera_poses
+    from bench.dds_nees import camera_poses, record_odometry
     from ekf_vo.config import NodeConfig
     from ekf_vo.core.frames import optical_to_body_extrinsic
     from ekf_vo.io.bag import read_ground_truth, topic_counts
-    from ekf_vo.ros.harness import Harness, NodeProcess, domain_id_for
-    from ekf_vo.ros.player import play_bag
+    from ekf_vo.ros.harness import domain_id_for
     from ekf_vo.tools.evaluate import evaluate
     topics = [t for t in topic_counts(bag) if t != '/ground_truth/pose']
     args = ['-r', 'image:=/camera/image_raw', '-r', 'camera_info:=/camera/camera_info',
@@ -147,23 +143,7 @@ def dds_run(bag: Path, params: list[str], work: Path, T_base_cam_xyz=(0.0, 0.0, 
                 str(float(v)) for v in T_base_cam_xyz)]
     for item in params:
         args += ['-p', item]
-    domain = domain_id_for(__name__)
-    node = NodeProcess('ekf_vo.ros.vo_node', args, domain, work / 'vo_node.log')
-    node.wait_for_output('vo_node ready')
-    h = Harness(domain)
-    try:
-        odom = h.record(Odometry, '/odom', QoSProfile(
-            reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL))
-        play_bag(h.node, bag, rate=1.0, topics=topics, clock=False, wait_for=['*'],
-                 wait_timeout_s=20.0)
-        n_last, quiet = -1, 0
-        while quiet < 3:                    # until the answers stop coming
-            h.spin_for(0.5)
-            quiet = quiet + 1 if len(odom) == n_last else 0
-            n_last = len(odom)
-    finally:
-        h.close()
-        node.stop()
+    odom = record_odometry(bag, args, topics, work, domain_id_for(__name__))
     T_bc = optical_to_body_extrinsic(T_base_cam_xyz, NodeConfig().T_base_cam_xyzw)
     stamps, poses, _ = camera_poses(list(odom), T_bc)
     gt_ns, gt_T = read_ground_truth(bag)

@@ -46,6 +46,23 @@ def _start_vo_node(tmp_path) -> NodeProcess:
     return vo
 
 
+def _offline_positions(info: dict, frames: list) -> dict:
+    """The offline core on the same frames (what ekf-vo-run gives): stamp -> camera
+    position of every published frame."""
+    from ekf_vo.config import VoConfig
+    from ekf_vo.core.camera import PinholeCamera
+    from ekf_vo.core.stream import VoStream
+    offline = VoStream(VoConfig())
+    offline.set_camera(PinholeCamera.from_camera_info(info))
+    positions = {}
+    for stamp, gray in frames:
+        r = offline.process(gray, stamp)
+        if getattr(r, 'ok', False):
+            positions[stamp] = r.T_world_cam[:3, 3].copy()
+    offline.vo.local_map.close()
+    return positions
+
+
 def test_faults_then_good_frames(tmp_path, demo):
     info, frames = demo
     vo = _start_vo_node(tmp_path)
@@ -164,15 +181,8 @@ def test_camera_info_after_its_image_and_bad_calibrations_mid_stream(tmp_path, d
     publishes its first pose at the frame ekf-vo-run does on the same frames. A K = 0
     and a NaN CameraInfo mid-stream cost their own images only: no reset, odometry for
     every other frame, no NaN, and the degraded/tracking transitions are logged."""
-    from ekf_vo.core.camera import PinholeCamera
-    from ekf_vo.core.stream import VoStream
-    from ekf_vo.config import VoConfig
     info, frames = demo
-    offline = VoStream(VoConfig())
-    offline.set_camera(PinholeCamera.from_camera_info(info))
-    first_offline = next(s for s, g in frames[:40] if getattr(offline.process(g, s), 'ok',
-                                                               False))
-    offline.vo.local_map.close()
+    first_offline = min(_offline_positions(info, frames[:40]))
 
     vo = _start_vo_node(tmp_path)
     h = Harness(DOMAIN)
@@ -218,19 +228,8 @@ def test_a_two_second_gap_over_dds_relocalises_in_the_same_map(tmp_path, demo):
     offline only): vo_node keeps its map, finds the camera in it within 5 frames of the
     stream's return, with no reset, no NaN, and a pose continuing in the same world frame
     (within 10 % of the distance travelled of where the offline run puts it)."""
-    from ekf_vo.core.camera import PinholeCamera
-    from ekf_vo.core.stream import VoStream
-    from ekf_vo.config import VoConfig
     info, frames = demo
-    sent = frames[:121] + frames[181:230]
-    offline = VoStream(VoConfig())
-    offline.set_camera(PinholeCamera.from_camera_info(info))
-    offline_pose = {}
-    for s, g in sent:
-        r = offline.process(g, s)
-        if getattr(r, 'ok', False):
-            offline_pose[s] = r.T_world_cam[:3, 3].copy()
-    offline.vo.local_map.close()
+    offline_pose = _offline_positions(info, frames[:121] + frames[181:230])
 
     vo = _start_vo_node(tmp_path)
     h = Harness(DOMAIN)

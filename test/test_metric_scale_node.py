@@ -42,11 +42,7 @@ def test_vo_node_publishes_metres_from_a_wheel_odometry(tmp_path):
         play_bag(h.node, bag, rate=1.0, topics=['/camera/image_raw', '/camera/camera_info',
                                                 '/scale_odom'],
                  clock=False, wait_for=['*'], wait_timeout_s=20.0)
-        n_last, quiet = -1, 0
-        while quiet < 3:
-            h.spin_for(0.5)
-            quiet = quiet + 1 if len(odom) == n_last else 0
-            n_last = len(odom)
+        h.spin_until_quiet(odom)
     finally:
         h.close()
         assert node.stop() == 0, node.output()

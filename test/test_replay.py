@@ -60,11 +60,7 @@ def _replay(tmp_path, bag) -> tuple[np.ndarray, np.ndarray]:
                          wait_for=['*'], wait_timeout_s=20.0)
         assert stats, 'nothing played'
         # the node answers every frame it can; wait until the answers stop coming
-        n_last, quiet = -1, 0
-        while quiet < 3:
-            h.spin_for(0.5)
-            quiet = quiet + 1 if len(odom) == n_last else 0
-            n_last = len(odom)
+        h.spin_until_quiet(odom)
     finally:
         h.close()
         assert node.stop() == 0, node.output()

@@ -105,6 +105,16 @@ class Harness:
             self.executor.spin_once(timeout_sec=0.02)
         return condition()
 
+    def spin_until_quiet(self, received: list, period_s: float = 0.5,
+                         quiet_periods: int = 3) -> None:
+        """Spin until `received` (a `record` list) has not grown for `quiet_periods`
+        periods of `period_s`: the node under test has answered all it will."""
+        n_last, quiet = -1, 0
+        while quiet < quiet_periods:
+            self.spin_for(period_s)
+            quiet = quiet + 1 if len(received) == n_last else 0
+            n_last = len(received)
+
     def record(self, msg_type: type, topic: str, qos: Any) -> list:
         """A new subscription on `topic`; returns the list its messages are appended to."""
         received: list = []
