@@ -4,7 +4,7 @@ KITTI 06 frames 0-50: monocular bootstrap from the images (scale arbitrary), ATE
 Sim(3) alignment. Middlebury dino: the paper's protocol, two-view bootstrap from the
 ground truth of the first two views (fixes the scale), then EKF vs EPnP.
 
-    python -m bench.real_data kitti06_f0-50 [--runs 8] [--estimators ekf iekf epnp]
+    python -m bench.real_data kitti06_f0-50 [--runs 8] [--estimators ekf iekf epnp] [--set N=V ...]
     python -m bench.real_data kitti06_f0-50 --single [--seed 0]     (one run, the preset)
 (either also writes its result to --json PATH)
 """
@@ -23,6 +23,7 @@ from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.stream import VoStream
 from ekf_vo.io.dataset import load_folder
 from ekf_vo.tools.evaluate import evaluate
+from ekf_vo.tools.run import parse_overrides
 from .common import shared_data, write_json
 
 #: settings per sequence (documented deviations from the defaults, and why)
@@ -104,9 +105,10 @@ def compare(name: str, estimators: tuple = ('ekf', 'iekf', 'epnp'), runs: int = 
     return out
 
 
-def single(name: str, seed: int, json_path: Path | None) -> int:
+def single(name: str, seed: int, json_path: Path | None, overrides: dict | None = None
+           ) -> int:
     """One run_sequence: print it, and write it (without the evaluation object)."""
-    r = run_sequence(name, seed=seed)
+    r = run_sequence(name, overrides, seed=seed)
     print(f"{name} ({r['estimator']}, seed {seed}): tracked {r['pct_tracked']:.1f} %, "
           f"ATE {r['ate_sim3_rmse']:.3f} m = {r['ate_pct_path']:.2f} % of "
           f"{r['path_length']:.1f} m, {r['n_resets']} resets, {r['fps']:.1f} fps")
@@ -125,10 +127,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="one run with the sequence's preset estimator, no comparison")
     parser.add_argument('--seed', type=int, default=0, help='the seed of --single')
     parser.add_argument('--json', type=Path, help='also write the result to this file')
+    parser.add_argument('--set', nargs='+', default=[], metavar='NAME=VALUE',
+                        help='core parameters over the preset (ekf-vo-params lists them)')
     args = parser.parse_args(argv)
+    try:
+        overrides = parse_overrides(args.set)
+    except ValueError as exc:
+        parser.error(str(exc))
     if args.single:
-        return single(args.sequence, args.seed, args.json)
-    res = compare(args.sequence, tuple(args.estimators), args.runs)
+        return single(args.sequence, args.seed, args.json, overrides)
+    res = compare(args.sequence, tuple(args.estimators), args.runs, overrides)
     if args.json:
         write_json(args.json, res)
     print(f'{args.sequence}: {args.runs} runs per estimator (mean +- std); '

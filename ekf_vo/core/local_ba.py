@@ -153,10 +153,8 @@ class _Window:
                                                       k * (s - 0.5 * k)), 0.5 * 1e12)))
         J_X = (Jp / self.sigma) @ self.R_cw[ci]              # (o,2,3)
         wJ_X = w[:, None, None] * J_X
-        Hpp = np.zeros((m, 3, 3))
-        np.add.at(Hpp, pi, np.transpose(J_X, (0, 2, 1)) @ wJ_X)
-        gp = np.zeros((m, 3))
-        np.add.at(gp, pi, np.einsum('oki,ok->oi', wJ_X, r))
+        Hpp = _scatter_sum(pi, np.transpose(J_X, (0, 2, 1)) @ wJ_X, m)
+        gp = _scatter_sum(pi, np.einsum('oki,ok->oi', wJ_X, r), m)
         Hcc, Hcp, gc = np.zeros((nc, nc)), np.zeros((m, nc, 3)), np.zeros(nc)
         rows = np.flatnonzero(self.slot[ci] >= 0)
         if len(rows):
@@ -166,15 +164,16 @@ class _Window:
             wJ_c = w[rows, None, None] * J_c
             sl = self.slot[ci[rows]]
             blocks = np.transpose(J_c, (0, 2, 1)) @ wJ_c                  # (c,6,6)
-            H6 = np.zeros((len(self.free), 6, len(self.free), 6))
-            np.add.at(H6, (sl, slice(None), sl), blocks)
-            Hcc = H6.reshape(nc, nc)
-            g6 = np.zeros((len(self.free), 6))
-            np.add.at(g6, sl, np.einsum('oki,ok->oi', wJ_c, r[rows]))
-            gc = g6.ravel()
-            Hcp5 = np.zeros((m, len(self.free), 6, 3))
-            np.add.at(Hcp5, (pi[rows], sl), np.transpose(J_c, (0, 2, 1)) @ wJ_X[rows])
-            Hcp = Hcp5.reshape(m, nc, 3)
+            nf = len(self.free)
+            # an observation involves one keyframe: Hcc is block diagonal
+            H6 = _scatter_sum(sl, blocks, nf)                               # (F,6,6)
+            Hcc = np.zeros((nf, 6, nf, 6))
+            Hcc[np.arange(nf), :, np.arange(nf), :] = H6
+            Hcc = Hcc.reshape(nc, nc)
+            gc = _scatter_sum(sl, np.einsum('oki,ok->oi', wJ_c, r[rows]), nf).ravel()
+            Hcp = _scatter_sum(pi[rows] * nf + sl,
+                               np.transpose(J_c, (0, 2, 1)) @ wJ_X[rows],
+                               m * nf).reshape(m, nc, 3)
         return _Normal(cost, Hcc, Hcp, Hpp, gc, gp)
 
     def solve(self, ne: _Normal, lam: float) -> tuple[np.ndarray, np.ndarray]:
@@ -186,7 +185,7 @@ class _Window:
             return np.zeros(0), -np.einsum('mij,mj->mi', Hpp_inv, ne.gp)
         Hcc = ne.Hcc + lam * np.diag(np.diag(ne.Hcc))
         W = ne.Hcp @ Hpp_inv                                       # (m,6F,3)
-        S = Hcc - np.einsum('mij,mkj->ik', W, ne.Hcp)
+        S = Hcc - _sum_outer(W, ne.Hcp)
         b = ne.gc - np.einsum('mij,mj->i', W, ne.gp)
         d_cam = np.linalg.solve(S + np.eye(self.nc) * 1e-12, -b)
         d_pts = -np.einsum('mij,mj->mi', Hpp_inv,
@@ -206,10 +205,27 @@ class _Window:
         if self.nc == 0:
             return Hpp_inv
         W = ne.Hcp @ Hpp_inv                                       # (m,6F,3)
-        S = ne.Hcc - np.einsum('mij,mkj->ik', W, ne.Hcp)
+        S = ne.Hcc - _sum_outer(W, ne.Hcp)
         S_inv = np.linalg.pinv(S)
         # cov(X_i) = Hpp_i^-1 + Hpp_i^-1 Hpc_i S^-1 Hcp_i Hpp_i^-1, with W_i = Hcp_i Hpp_i^-1
-        return Hpp_inv + np.einsum('mji,jk,mkl->mil', W, S_inv, W)
+        return Hpp_inv + np.transpose(W, (0, 2, 1)) @ (S_inv @ W)
+
+
+def _scatter_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """out[k] = sum of values[o] over o with index[o] == k, out (n, *values.shape[1:])
+    (np.bincount per component: several times faster than np.add.at)."""
+    flat = values.reshape(len(values), -1)
+    out = np.empty((n, flat.shape[1]))
+    for j in range(flat.shape[1]):
+        out[:, j] = np.bincount(index, weights=flat[:, j], minlength=n)
+    return out.reshape((n,) + values.shape[1:])
+
+
+def _sum_outer(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """sum_m A_m B_m^T for (m,n,3) stacks, as one matrix product (BLAS; an einsum over
+    the stack was 90 % of a 20-keyframe adjustment's time)."""
+    n = A.shape[1]
+    return np.transpose(A, (1, 0, 2)).reshape(n, -1) @ np.transpose(B, (1, 0, 2)).reshape(n, -1).T
 
 
 def adjust_window(problem: WindowProblem, K: np.ndarray, sigma_px: float, huber_px: float,
