@@ -10,6 +10,14 @@ log(R_gt_in_est R_est^T)), the convention of the published pose covariance
 is honest. The alignment removes the gauge (a monocular map's frame and scale); what is
 left is the drift the covariance has to account for.
 
+Two alignments are reported. "Sim(3)" is the least-squares fit over the whole run: it
+spreads the error over all frames, the first ones included, whose covariance is tiny, so
+its NEES mixes the alignment's own choice into the verdict. "gauge" aligns the estimate
+the way its covariance is expressed (docs/method.md §12.7): the world frame is the
+bootstrap's first camera (`FrameResult.reference_frame_index`), put on its ground-truth
+pose, and the map unit is the bootstrap baseline, scaled to its ground-truth length. The
+gauge NEES is the one the [4, 9] target reads; both are in the table.
+
     python -m bench.pipeline_nees [--seeds 3] [--set NAME=VALUE ...] [--json OUT]
 """
 from __future__ import annotations
@@ -45,6 +53,19 @@ def frame_nees(T_gt_est: np.ndarray, T_gt: np.ndarray, T_est: np.ndarray,
     return float(e @ np.linalg.solve(cov, e))
 
 
+def gauge_alignment(T_gt_ref: np.ndarray, T_gt_first: np.ndarray,
+                    T_est_first: np.ndarray) -> np.ndarray:
+    """T_gt_est = [[sR, t], [0, 1]] of the estimator's own gauge: the world frame is the
+    reference camera of the bootstrap (identity in the estimate) and one map unit is the
+    bootstrap baseline (the estimate's distance from it to the first tracked pose)."""
+    baseline_est = np.linalg.norm(T_est_first[:3, 3])
+    s = np.linalg.norm(T_gt_first[:3, 3] - T_gt_ref[:3, 3]) / max(baseline_est, 1e-12)
+    T = np.eye(4)
+    T[:3, :3] = s * T_gt_ref[:3, :3]
+    T[:3, 3] = T_gt_ref[:3, 3]
+    return T
+
+
 def run_one(trajectory: str, seed: int, overrides: dict) -> dict:
     scfg = SynthConfig(frames=200, seed=seed, trajectory=trajectory)
     frames = list(render_sequence(scfg))
@@ -60,10 +81,18 @@ def run_one(trajectory: str, seed: int, overrides: dict) -> dict:
                   n_frames_total=len(frames))
     nees = np.array([frame_nees(ev.T_gt_est_sim3, gt_T[k], res[k].T_world_cam,
                                 res[k].pose_cov) for k in ok])
+    first = ok[0]
+    T_gauge = gauge_alignment(gt_T[res[first].reference_frame_index], gt_T[first],
+                              res[first].T_world_cam)
+    gauge = np.array([frame_nees(T_gauge, gt_T[k], res[k].T_world_cam, res[k].pose_cov)
+                      for k in ok])
     return {'trajectory': trajectory, 'seed': seed, 'pct_tracked': ev.pct_tracked,
             'ate_pct_path': ev.ate_sim3_pct_of_path, 'resets': vo.n_resets,
             'nees_mean': float(np.mean(nees)), 'nees_median': float(np.median(nees)),
-            'pct_above_99_9': float(100 * np.mean(nees > 22.46))}   # chi2(6) 99.9 %
+            'pct_above_99_9': float(100 * np.mean(nees > 22.46)),   # chi2(6) 99.9 %
+            'gauge_nees_mean': float(np.mean(gauge)),
+            'gauge_nees_median': float(np.median(gauge)),
+            'gauge_pct_above_99_9': float(100 * np.mean(gauge > 22.46))}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -79,12 +108,14 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         p.error(str(exc))
     rows = [run_one(tr, s, overrides) for tr in args.trajectories for s in range(args.seeds)]
+    print(f'{"":<10} {"":>4} {"":>9} {"":>10} {"gauge":^30} {"Sim(3)":^30}')
     print(f'{"sequence":<10} {"seed":>4} {"tracked %":>9} {"ATE % path":>10} '
-          f'{"NEES mean":>10} {"median":>8} {"% > 99.9%":>10}')
+          + f'{"NEES mean":>10} {"median":>8} {"% > 99.9%":>10}' * 2)
     for r in rows:
         print(f'{r["trajectory"]:<10} {r["seed"]:4d} {r["pct_tracked"]:9.1f} '
-              f'{r["ate_pct_path"]:10.2f} {r["nees_mean"]:10.1f} {r["nees_median"]:8.1f} '
-              f'{r["pct_above_99_9"]:10.1f}')
+              f'{r["ate_pct_path"]:10.2f} {r["gauge_nees_mean"]:10.1f} '
+              f'{r["gauge_nees_median"]:8.1f} {r["gauge_pct_above_99_9"]:10.1f}'
+              f'{r["nees_mean"]:10.1f} {r["nees_median"]:8.1f} {r["pct_above_99_9"]:10.1f}')
     if args.json:
         write_json(args.json, {'overrides': overrides, 'runs': rows})
     return 0

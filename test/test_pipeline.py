@@ -44,6 +44,12 @@ def test_tracks_a_rendered_hand_held_sequence(sequence, estimator):
     assert ev.pct_tracked >= 90.0
     assert ev.ate_sim3_pct_of_path < 3.0
     assert vo.n_resets == 0
+    # the bootstrap names the frame whose camera is the world frame: it is at the origin
+    # and one baseline (one map unit) from the first pose
+    boot = next(k for k, r in enumerate(results) if r.bootstrapped)
+    ref = results[boot].reference_frame_index
+    assert 0 <= ref < boot
+    assert np.linalg.norm(results[boot].T_world_cam[:3, 3]) == pytest.approx(1.0, rel=1e-6)
     for r in results:
         if r.ok:
             assert np.all(np.isfinite(r.pose_cov)) and np.linalg.eigvalsh(r.pose_cov).min() > 0

@@ -36,6 +36,9 @@ class FrameResult:
     nis_per_dof: float = 0.0               #: normalised innovation squared / (2 n)
     map_size: int = 0
     bootstrapped: bool = False              #: this frame completed a (re-)bootstrap
+    #: with bootstrapped: the index (images processed, from 0) of the bootstrap's first
+    #: frame, the pose the map's gauge was fixed at (docs/method.md §12.7)
+    reference_frame_index: int = -1
     #: online checks of a tracked frame (health.py): 'ok', 'degraded' or 'lost', and why
     health: str = ''
     health_reason: str = ''

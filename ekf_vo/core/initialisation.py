@@ -101,6 +101,7 @@ class Initialisation:
         ideal px, T_world_cam), oldest first, from which tracks without a point become
         triangulation candidates (wider baseline than from now)."""
         anchor = self.world_cov.bootstrap_anchor(sources[0][3], T_world_cur, X_world)
+        res.reference_frame_index = int(sources[0][0])
         self.map.add(point_ids, X_world, self.frame_index,
                      cov=self.growth.two_view_covariances(X_world, sources[0][3], T_world_cur),
                      anchor=anchor)
