@@ -32,7 +32,7 @@ import numpy as np
 from ekf_vo.config import VoConfig
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.camera import PinholeCamera
-from ekf_vo.core.pipeline import VisualOdometry
+from ekf_vo.core.stream import VoStream
 from ekf_vo.tools.evaluate import evaluate
 from ekf_vo.tools.run import parse_overrides
 from ekf_vo.tools.synth import SynthConfig, render_sequence
@@ -70,10 +70,11 @@ def run_one(trajectory: str, seed: int, overrides: dict) -> dict:
     scfg = SynthConfig(frames=200, seed=seed, trajectory=trajectory)
     frames = list(render_sequence(scfg))
     cfg = dataclasses.replace(VoConfig(), **overrides).validate()
-    vo = VisualOdometry(cfg, PinholeCamera(scfg.width, scfg.height, scfg.K()), seed=seed)
-    res = [vo.process(img, stamp) for stamp, img, _ in frames]
-    if vo.local_map is not None:
-        vo.local_map.close()
+    stream = VoStream(cfg, seed=seed)     # the front door: what vo_node publishes
+    stream.set_camera(PinholeCamera(scfg.width, scfg.height, scfg.K()))
+    res = [stream.process(img, stamp) for stamp, img, _ in frames]
+    if stream.vo.local_map is not None:
+        stream.vo.local_map.close()
     ok = [k for k, r in enumerate(res) if r.ok]
     gt_s = np.array([s * 1e-9 for s, _, _ in frames])
     gt_T = np.array([T for _, _, T in frames])
@@ -87,7 +88,7 @@ def run_one(trajectory: str, seed: int, overrides: dict) -> dict:
     gauge = np.array([frame_nees(T_gauge, gt_T[k], res[k].T_world_cam, res[k].pose_cov)
                       for k in ok])
     return {'trajectory': trajectory, 'seed': seed, 'pct_tracked': ev.pct_tracked,
-            'ate_pct_path': ev.ate_sim3_pct_of_path, 'resets': vo.n_resets,
+            'ate_pct_path': ev.ate_sim3_pct_of_path, 'resets': stream.n_resets,
             'nees_mean': float(np.mean(nees)), 'nees_median': float(np.median(nees)),
             'pct_above_99_9': float(100 * np.mean(nees > 22.46)),   # chi2(6) 99.9 %
             'gauge_nees_mean': float(np.mean(gauge)),

@@ -284,6 +284,13 @@ class VoConfig(_Params):
         'in place, renews the map): its variance grows by this squared per radian (0.05: '
         '6 % per 90 deg; the rendered ground robot\'s map changed by up to 7 % per turn).',
         '1/sqrt(rad)', 0.0, 10.0, group='scale')
+    scale_drift_per_sqrt_depth: float = param(
+        0.02, 'scale_source none: growth of the map scale\'s log-uncertainty with the '
+        'distance travelled in units of the median depth of the map points in front of the '
+        'camera (the unit is the bootstrap baseline, so metres mean nothing): its variance '
+        'grows by this squared per depth travelled, and the published position and '
+        'velocity covariances carry the error it makes (docs/method.md §16.7). KITTI 06: '
+        '1-3 % in 2.4 depths.', '1/sqrt(depth)', 0.0, 10.0, group='scale')
     scale_odom_window_s: float = param(
         1.0, 'odometry: one scale measurement per window of this length (the median of '
         'its sub-segments\' distance ratios).', 's', 0.1, 600.0, group='scale')

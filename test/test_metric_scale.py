@@ -248,3 +248,33 @@ def test_bad_scale_odometry_is_rejected_and_counted():
     assert stream.add_scale_odometry(3_000, np.ones(3)) is None
     assert stream.counters['bad_scale_odom'] == 1
     assert stream.counters['scale_odom_out_of_order'] == 1
+
+
+def test_in_map_units_the_covariance_carries_the_scale_drift():
+    """scale_source none: the pose stays in map units, untouched; the scale error is
+    zero at the first pose and grows with the depths travelled and the angle turned, and
+    the published position and velocity covariances carry the error it makes."""
+    X_ahead = np.array([[0.0, 0.0, 10.0 + z] for z in range(0, 400, 4)], float)
+
+    def run(**kw):
+        scale = MetricScale(_cfg(scale_source='none', **kw))
+        out = []
+        for k in range(200):                        # 20 map units straight ahead
+            res = _frame(int(k * 1e8), np.array([0.0, 0.0, 0.1 * k]), np.array([0, 0, 1.0]))
+            scale.apply(res, X_ahead, np.full(len(X_ahead), 3))
+            out.append(res)
+        return scale, out
+    scale, out = run()
+    assert all(np.allclose(r.T_world_cam[:3, 3], [0.0, 0.0, 0.1 * k]) for k, r in
+               enumerate(out))
+    assert out[0].pose_cov[0, 0] == pytest.approx(1e-4)        # the gauge: exact
+    growth = [r.pose_cov[2, 2] - 1e-4 for r in out]
+    assert all(b >= a for a, b in zip(growth, growth[1:])) and growth[-1] > 0
+    # the median depth ahead is ~ 200 units: 20 units are 0.1 depths, sigma 0.02 * 0.32;
+    # the position error ~ that times the distance / sqrt(3) (a random walk's integral)
+    assert math.sqrt(growth[-1]) == pytest.approx(20 * 0.02 * math.sqrt(0.1) / math.sqrt(3),
+                                                  rel=0.3)
+    assert out[-1].twist_cov[2, 2] > 1e-4
+    assert scale.status().state == 'map units' and scale.status().sigma_pct > 0
+    _, still = run(scale_drift_per_sqrt_depth=0.0, scale_drift_per_sqrt_rad=0.0)
+    assert all(np.allclose(r.pose_cov, np.eye(6) * 1e-4) for r in still)

@@ -35,6 +35,14 @@ linear part is scaled and gains sigma_lambda^2 v v^T. With `camera_height`, the 
 own uncertainty (camera_height_sigma_m) is a bias no averaging removes: it is added to
 the published sigma.
 
+Map units (`scale_source: none`, docs/method.md §16.7). The published pose stays in
+map units, but the map's scale drifts away from the bootstrap baseline that defines the
+unit, and the filter's covariance (relative to the map, plus §14's terms) does not carry
+that: lambda is then the log of the scale error, zero at the first bootstrap, its variance
+growing by `scale_drift_per_sqrt_depth`^2 per median scene depth travelled (the unit is
+arbitrary, depths are not) and `scale_drift_per_sqrt_rad`^2 per radian turned; the same
+consider terms add the position error it makes, and sigma^2 v v^T to the twist.
+
 Pure numpy; no ROS types. Stamps are integer nanoseconds.
 """
 from __future__ import annotations
@@ -240,6 +248,8 @@ class MetricScale:
     def reset(self) -> None:
         """A new world (new estimator): the scale is unknown again."""
         self.filter = ScaleFilter()
+        if not self.active:
+            self.filter.var = 0.0        # map units: the bootstrap baseline IS the unit
         self.scale = 1.0                 # published metres per map unit
         self.offset = np.zeros(3)        # published p = scale * p_map + offset
         self._down_world: np.ndarray | None = None
@@ -277,8 +287,12 @@ class MetricScale:
 
     # ------------------------------------------------------------------ per frame
     def apply(self, res: FrameResult, X_world: np.ndarray, n_obs: np.ndarray) -> None:
-        """Update the scale with this frame and convert `res` to metres in place."""
-        if not (self.active and res.ok and res.T_world_cam is not None):
+        """Update the scale with this frame and convert `res` to metres in place (map
+        units: add the scale drift's error to its covariance)."""
+        if not (res.ok and res.T_world_cam is not None):
+            return
+        if not self.active:
+            self._drift_in_map_units(res, X_world)
             return
         T = res.T_world_cam
         p_map = T[:3, 3].copy()
@@ -313,6 +327,31 @@ class MetricScale:
             # ~/status: WARN with the reason (DEGRADED), not an error
             res.health, res.health_reason = 'degraded', res.message
             return
+        self._convert(res)
+
+    def _drift_in_map_units(self, res: FrameResult, X_world: np.ndarray) -> None:
+        """scale_source none: the scale error's variance grows per scene depth travelled
+        and per radian turned; its position error is published (module docstring)."""
+        T = res.T_world_cam
+        p_map = T[:3, 3].copy()
+        if res.bootstrapped and self._last_p_map is not None:
+            self.filter.predict(REBOOTSTRAP_LOG_SIGMA ** 2)   # scale carried by the speed
+        if self._last_p_map is not None:
+            depth = X_world[:, :3] - p_map if len(X_world) else np.zeros((0, 3))
+            depth = depth @ T[:3, 2]
+            depth = depth[depth > 0]
+            step = float(np.linalg.norm(p_map - self._last_p_map))
+            cos_turn = (np.trace(self._last_R.T @ T[:3, :3]) - 1.0) / 2.0
+            turn = math.acos(min(max(cos_turn, -1.0), 1.0))
+            per_depth = step / float(np.median(depth)) if len(depth) else 0.0
+            self.filter.predict(self.cfg.scale_drift_per_sqrt_depth ** 2 * per_depth +
+                                self.cfg.scale_drift_per_sqrt_rad ** 2 * turn)
+        self._settled = True              # map units: p = p_map, nothing is rescaled
+        self._last_R = T[:3, :3].copy()
+        self.last_frame_ns = res.stamp_ns
+        if self._last_p_map is None:
+            self._last_p_map = p_map          # the first pose: the error starts here
+        self._publish_scale(p_map)
         self._convert(res)
 
     def _measure(self, res: FrameResult, T: np.ndarray, X_world: np.ndarray,

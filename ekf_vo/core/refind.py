@@ -15,7 +15,6 @@ count it twice).
 """
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 
