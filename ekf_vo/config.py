@@ -221,6 +221,14 @@ class VoConfig(_Params):
         2, 'An adjustment started at a keyframe is applied before the update of the frame '
         'this many frames later (waiting for it if it is not done: results do not depend '
         'on timing).', 'frames', 1, 100, group='local_map')
+    ba_pose_prior_weight: float = param(
+        0.0, 'Share of an adjustment\'s information about a keyframe pose (the inverse of '
+        'its marginal covariance, from its observations) kept as a prior on that pose in '
+        'the next adjustment (0: none, each window starts afresh from its two fixed '
+        'keyframes; 1: all of it, which counts those observations twice, the price of not '
+        'marginalising). Off by default: better on a car (KITTI 06), but it lost the '
+        'rendered ground robot driving arcs (docs/method.md §12.2, §12.4).', '', 0.0, 1.0,
+        group='local_map')
     refind_map_points: bool = param(
         False, 'Search map points whose track has ended around their predicted pixel by '
         'ORB descriptor; a match becomes a measurement and a track again '

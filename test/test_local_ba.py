@@ -80,20 +80,27 @@ def test_adjustment_recovers_the_window_and_its_points():
         0.75 * np.median(np.linalg.norm(X0 - X, axis=1))
 
 
-def test_point_covariances_are_consistent():
-    """NEES of the refined points against the truth over noise draws: 3 dof -> mean ~3."""
-    T, X, ci, pi, px = _scene(np.random.default_rng(2), n_pts=60)
+def _noise_draws(scene_seed: int, first_draw: int, n_draws: int = 20):
+    """The truth (T, X, fixed) and the adjusted windows of n_draws draws of 1 px pixel
+    noise and perturbed starts (a plain least-squares cost: Huber width 100 px)."""
+    T, X, ci, pi, px = _scene(np.random.default_rng(scene_seed), n_pts=60)
     fixed = np.zeros(len(T), bool)
     fixed[:2] = True
-    nees = []
-    for seed in range(20):
-        rng = np.random.default_rng(100 + seed)
+    sols = []
+    for seed in range(first_draw, first_draw + n_draws):
+        rng = np.random.default_rng(seed)
         noisy = px + rng.normal(0, 1.0, px.shape)
-        sol = adjust_window(WindowProblem(_perturbed(T, rng, fixed), fixed,
-                                          X + rng.normal(0, 0.05, X.shape), ci, pi, noisy),
-                            K, sigma_px=1.0, huber_px=100.0, max_iterations=50)
-        e = sol.X_world - X
-        nees.append(np.einsum('mi,mij,mj->m', e, np.linalg.inv(sol.X_cov), e))
+        sols.append(adjust_window(
+            WindowProblem(_perturbed(T, rng, fixed), fixed, X + rng.normal(0, 0.05, X.shape),
+                          ci, pi, noisy), K, sigma_px=1.0, huber_px=100.0, max_iterations=50))
+    return T, X, fixed, sols
+
+
+def test_point_covariances_are_consistent():
+    """NEES of the refined points against the truth over noise draws: 3 dof -> mean ~3."""
+    _, X, _, sols = _noise_draws(2, 100)
+    nees = [np.einsum('mi,mij,mj->m', s.X_world - X, np.linalg.inv(s.X_cov), s.X_world - X)
+            for s in sols]
     mean = float(np.mean(nees))
     assert 2.2 < mean < 4.0, mean
 
@@ -104,3 +111,60 @@ def test_two_view_point_covariance_grows_with_depth():
     X = np.array([[0.5, 0.0, 5.0], [0.5, 0.0, 20.0]])
     cov = point_covariances(X, [T_a, T_b], K, 1.0)
     assert cov[1, 2, 2] > 10 * cov[0, 2, 2] > 0
+
+
+def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """(dtheta, dC) of the adjustment's parametrisation: R_cw = exp(dtheta) R_cw_true."""
+    dR = T_est[:3, :3].T @ T_true[:3, :3]
+    w = geo.quat_to_rotvec(geo.matrix_to_quat(dR))
+    return np.concatenate((w, T_est[:3, 3] - T_true[:3, 3]))
+
+
+def test_keyframe_covariances_are_consistent():
+    """NEES of the free keyframes' poses (the information kept as the next window's
+    prior) against the truth over noise draws: 6 dof -> mean ~6."""
+    T, _, fixed, sols = _noise_draws(3, 200)
+    nees = []
+    for sol in sols:
+        assert np.all(sol.T_cov[fixed] == 0)
+        for k in np.flatnonzero(~fixed):
+            e = _pose_error(sol.T_world_cam[k], T[k])
+            nees.append(e @ np.linalg.solve(sol.T_cov[k], e))
+    mean = float(np.mean(nees))
+    assert 4.5 < mean < 8.0, mean
+
+
+def test_a_pose_prior_enters_the_cost_and_holds_the_pose():
+    """The normal equations with a prior are the cost's derivative (to first order in the
+    prior's rotation offset), and a strong prior at the truth keeps a keyframe there while
+    the others move."""
+    rng = np.random.default_rng(4)
+    T, X, ci, pi, px = _scene(rng, n_kf=4, n_pts=20)
+    fixed = np.array([True, True, False, False])
+    info = np.zeros((4, 6, 6))
+    info[2] = info[3] = np.diag([1e4, 1e4, 1e4, 1e2, 1e2, 1e2])
+    start = _perturbed(T, rng, fixed, pos_sigma=0.01, rot_sigma=0.001)
+    win = _Window(WindowProblem(start, fixed, X + 0.1, ci, pi, px, info), K, 1.0, 3.0)
+    # the prior's mean is where the window starts: move it off to test the gradient
+    win.C = win.C + np.array([0.0, 0.0, 0.01])
+    ne = win.normal_equations()
+    assert np.isclose(ne.cost, win.cost())
+    num = np.zeros(win.nc)
+    for j in range(win.nc):
+        costs = []
+        for sign in (1, -1):
+            saved = win.state()
+            d = np.zeros(win.nc)
+            d[j] = sign * 1e-6
+            win.apply(d, np.zeros((len(X), 3)))
+            costs.append(win.cost())
+            win.restore(saved)
+        num[j] = (costs[0] - costs[1]) / 2e-6
+    assert np.max(np.abs(ne.gc - num)) < 1e-3 * max(1.0, np.max(np.abs(num)))
+    strong = np.zeros((4, 6, 6))
+    strong[3] = np.eye(6) * 1e12
+    truth_start = _perturbed(T, rng, np.array([True, True, False, True]))
+    sol = adjust_window(WindowProblem(truth_start, fixed, X + 0.05, ci, pi, px, strong),
+                        K, 1.0, 3.0, 30)
+    assert np.allclose(sol.T_world_cam[3], T[3], atol=1e-6)
+    assert np.linalg.norm(sol.T_world_cam[2, :3, 3] - T[2, :3, 3]) < 1e-3

@@ -63,6 +63,9 @@ class WindowProblem:
     cam_idx: np.ndarray
     pt_idx: np.ndarray
     px: np.ndarray
+    #: optional (k,6,6) information of a prior on each keyframe's pose (zeros: none),
+    #: about T_world_cam, in the increments (dtheta, dC) and units of the pixel sigma
+    prior_info: np.ndarray | None = None
 
 
 @dataclass
@@ -77,6 +80,8 @@ class WindowSolution:
     point_median_err_px: np.ndarray  #: (m,) median error of each point over its views
     n_iterations: int
     elapsed_ms: float
+    #: (k,6,6) marginal covariance of each keyframe's (dtheta, dC) (zeros: fixed)
+    T_cov: np.ndarray | None = None
 
     @property
     def rms_after_px(self) -> float:
@@ -94,6 +99,9 @@ class _Normal:
     Hpp: np.ndarray            #: (m,3,3)
     gc: np.ndarray             #: (6F,)
     gp: np.ndarray             #: (m,3)
+    #: Hcc of the observations alone (without the pose priors): the information this
+    #: window hands on, which must not include what it was handed (it would pile up)
+    Hcc_obs: np.ndarray | None = None
 
 
 class _Window:
@@ -114,6 +122,23 @@ class _Window:
         self.slot[free] = np.arange(len(free))
         self.free = free
         self.nc = 6 * len(free)
+        self.R_prior, self.C_prior = self.R_cw[free].copy(), self.C[free].copy()
+        info = problem.prior_info
+        self.prior_info = None if info is None or not np.any(info[free]) else \
+            np.asarray(info, float)[free]
+
+    def _prior_residual(self) -> np.ndarray:
+        """(F,6): (dtheta, dC) of each free keyframe from its prior (small-angle log)."""
+        dR = self.R_cw[self.free] @ np.transpose(self.R_prior, (0, 2, 1))
+        w = 0.5 * np.stack((dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0],
+                            dR[:, 1, 0] - dR[:, 0, 1]), axis=1)
+        return np.concatenate((w, self.C[self.free] - self.C_prior), axis=1)
+
+    def _prior_cost(self) -> float:
+        if self.prior_info is None:
+            return 0.0
+        d = self._prior_residual()
+        return 0.5 * float(np.einsum('fi,fij,fj->', d, self.prior_info, d))
 
     def state(self):
         return self.R_cw.copy(), self.C.copy(), self.X.copy()
@@ -138,7 +163,8 @@ class _Window:
         s = self.errors_px() / self.sigma
         s = np.where(np.isfinite(s), s, 1e6)
         k = self.huber
-        return float(np.sum(np.where(s <= k, 0.5 * s ** 2, k * (s - 0.5 * k))))
+        return float(np.sum(np.where(s <= k, 0.5 * s ** 2, k * (s - 0.5 * k)))) + \
+            self._prior_cost()
 
     def normal_equations(self) -> _Normal:
         ci, pi = self.p.cam_idx, self.p.pt_idx
@@ -174,7 +200,16 @@ class _Window:
             Hcp = _scatter_sum(pi[rows] * nf + sl,
                                np.transpose(J_c, (0, 2, 1)) @ wJ_X[rows],
                                m * nf).reshape(m, nc, 3)
-        return _Normal(cost, Hcc, Hcp, Hpp, gc, gp)
+        Hcc_obs = Hcc
+        if self.prior_info is not None and nc:
+            d = self._prior_residual()
+            nf = len(self.free)
+            Hcc = Hcc.copy().reshape(nf, 6, nf, 6)
+            Hcc[np.arange(nf), :, np.arange(nf), :] += self.prior_info
+            Hcc = Hcc.reshape(nc, nc)
+            gc = gc + np.einsum('fij,fj->fi', self.prior_info, d).ravel()
+            cost += self._prior_cost()
+        return _Normal(cost, Hcc, Hcp, Hpp, gc, gp, Hcc_obs)
 
     def solve(self, ne: _Normal, lam: float) -> tuple[np.ndarray, np.ndarray]:
         """Damped step (cameras (6F,), points (m,3)) by Schur complement."""
@@ -200,15 +235,27 @@ class _Window:
         self.X += d_pts
 
     def point_covariances(self, ne: _Normal) -> np.ndarray:
-        """Marginal covariance (m,3,3) of each point (Schur complement, no damping)."""
+        """Marginal covariance (m,3,3) of each point (Schur complement, no damping), from
+        the observations alone (the pose priors are this window's inputs, not its
+        findings)."""
         Hpp_inv = np.linalg.inv(ne.Hpp + np.eye(3) * _INFO_REGULARISER)
         if self.nc == 0:
             return Hpp_inv
         W = ne.Hcp @ Hpp_inv                                       # (m,6F,3)
-        S = ne.Hcc - _sum_outer(W, ne.Hcp)
+        S = (ne.Hcc if ne.Hcc_obs is None else ne.Hcc_obs) - _sum_outer(W, ne.Hcp)
         S_inv = np.linalg.pinv(S)
+        self.S_inv = S_inv
         # cov(X_i) = Hpp_i^-1 + Hpp_i^-1 Hpc_i S^-1 Hcp_i Hpp_i^-1, with W_i = Hcp_i Hpp_i^-1
         return Hpp_inv + np.transpose(W, (0, 2, 1)) @ (S_inv @ W)
+
+    def keyframe_covariances(self) -> np.ndarray:
+        """(k,6,6) marginal covariance of each keyframe (after point_covariances)."""
+        out = np.zeros((len(self.slot), 6, 6))
+        S_inv = getattr(self, 'S_inv', None)
+        for j, sl in enumerate(self.slot):
+            if sl >= 0 and S_inv is not None:
+                out[j] = S_inv[6 * sl:6 * sl + 6, 6 * sl:6 * sl + 6]
+        return out
 
 
 def _scatter_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
@@ -254,9 +301,10 @@ def adjust_window(problem: WindowProblem, K: np.ndarray, sigma_px: float, huber_
                 break
     T_out = np.stack([geo.make_T(R.T, c) for R, c in zip(win.R_cw, win.C)])
     err1 = win.errors_px()
-    return WindowSolution(T_out, win.X.copy(), win.point_covariances(ne), err0, err1,
+    X_cov = win.point_covariances(ne)
+    return WindowSolution(T_out, win.X.copy(), X_cov, err0, err1,
                           _median_per_point(err1, problem.pt_idx, len(win.X)), n_iter,
-                          (time.perf_counter() - t0) * 1e3)
+                          (time.perf_counter() - t0) * 1e3, win.keyframe_covariances())
 
 
 def _median_per_point(err: np.ndarray, pt_idx: np.ndarray, m: int) -> np.ndarray:

@@ -47,6 +47,8 @@ class Keyframe:
     #: the filter's pose when it became a keyframe (never refined: the rotation check
     #: judges the filter, rotation_check.py)
     T_world_cam_filter: np.ndarray | None = None
+    #: information (6x6) of the last adjustment about this keyframe's pose (zeros: none)
+    prior_info: np.ndarray | None = None
 
 
 @dataclass
@@ -185,8 +187,12 @@ class LocalMapper:
             return None
         fixed = np.zeros(len(kfs), bool)
         fixed[:self.cfg.ba_fixed_keyframes] = True
+        prior = None
+        if self.cfg.ba_pose_prior_weight > 0:
+            prior = np.stack([kf.prior_info if kf.prior_info is not None else np.zeros((6, 6))
+                              for kf in kfs])
         problem = WindowProblem(np.stack([kf.T_world_cam for kf in kfs]), fixed, X.copy(),
-                                cam_idx, pt_idx, px)
+                                cam_idx, pt_idx, px, prior)
         return problem, point_ids
 
     def _wide_enough(self, X: np.ndarray, cam_idx: np.ndarray, pt_idx: np.ndarray
@@ -235,8 +241,11 @@ class LocalMapper:
     def _apply(self, sol: WindowSolution, pend: _Pending, landmarks: LandmarkMap
                ) -> np.ndarray:
         c = self.cfg
-        for kf, T in zip(pend.keyframes, sol.T_world_cam):
+        for j, (kf, T) in enumerate(zip(pend.keyframes, sol.T_world_cam)):
             kf.T_world_cam = T
+            if c.ba_pose_prior_weight > 0 and sol.T_cov is not None and np.any(sol.T_cov[j]):
+                # what this window said about the pose, kept for the next (§12.2)
+                kf.prior_info = c.ba_pose_prior_weight * np.linalg.pinv(sol.T_cov[j])
         # a point whose median error over its keyframes stays large is wrong: cull it
         n = len(pend.point_ids)
         bad = ~(sol.point_median_err_px <= c.ba_outlier_px)
