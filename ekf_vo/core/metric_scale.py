@@ -307,10 +307,9 @@ class MetricScale:
             # the map's scale drifts as it is renewed: with the distance travelled, and
             # with the angle turned (a turn in place replaces the points in view)
             step_m = self.scale * float(np.linalg.norm(p_map - self._last_p_map))
-            cos_turn = (np.trace(self._last_R.T @ T[:3, :3]) - 1.0) / 2.0
-            turn = math.acos(min(max(cos_turn, -1.0), 1.0))
             self.filter.predict(self.cfg.scale_drift_per_sqrt_m ** 2 * step_m +
-                                self.cfg.scale_drift_per_sqrt_rad ** 2 * turn)
+                                self.cfg.scale_drift_per_sqrt_rad ** 2 *
+                                self._turn_rad(T[:3, :3]))
             if self._settled and math.sqrt(self.filter.var) > UNSETTLED_LOG_SIGMA:
                 # the scale is uncertain again: settle it anew, about where the camera is
                 self._pivot = (p_map, self.points(p_map), self._P_pp.copy(),
@@ -337,15 +336,14 @@ class MetricScale:
         if res.bootstrapped and self._last_p_map is not None:
             self.filter.predict(REBOOTSTRAP_LOG_SIGMA ** 2)   # scale carried by the speed
         if self._last_p_map is not None:
-            depth = X_world[:, :3] - p_map if len(X_world) else np.zeros((0, 3))
-            depth = depth @ T[:3, 2]
-            depth = depth[depth > 0]
+            # distance in median scene depths: the map unit is arbitrary, depths are not
+            ahead = (np.asarray(X_world, float).reshape(-1, 3) - p_map) @ T[:3, 2]
+            ahead = ahead[ahead > 0]
             step = float(np.linalg.norm(p_map - self._last_p_map))
-            cos_turn = (np.trace(self._last_R.T @ T[:3, :3]) - 1.0) / 2.0
-            turn = math.acos(min(max(cos_turn, -1.0), 1.0))
-            per_depth = step / float(np.median(depth)) if len(depth) else 0.0
-            self.filter.predict(self.cfg.scale_drift_per_sqrt_depth ** 2 * per_depth +
-                                self.cfg.scale_drift_per_sqrt_rad ** 2 * turn)
+            depths = step / float(np.median(ahead)) if len(ahead) else 0.0
+            self.filter.predict(self.cfg.scale_drift_per_sqrt_depth ** 2 * depths +
+                                self.cfg.scale_drift_per_sqrt_rad ** 2 *
+                                self._turn_rad(T[:3, :3]))
         self._settled = True              # map units: p = p_map, nothing is rescaled
         self._last_R = T[:3, :3].copy()
         self.last_frame_ns = res.stamp_ns
@@ -353,6 +351,11 @@ class MetricScale:
             self._last_p_map = p_map          # the first pose: the error starts here
         self._publish_scale(p_map)
         self._convert(res)
+
+    def _turn_rad(self, R_world_cam: np.ndarray) -> float:
+        """Angle turned since the last frame [rad]."""
+        cos_turn = (np.trace(self._last_R.T @ R_world_cam) - 1.0) / 2.0
+        return math.acos(min(max(cos_turn, -1.0), 1.0))
 
     def _measure(self, res: FrameResult, T: np.ndarray, X_world: np.ndarray,
                  n_obs: np.ndarray) -> None:
