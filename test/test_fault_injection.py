@@ -4,6 +4,7 @@ each fault, and (re)gain tracking within a bounded number of good frames."""
 from __future__ import annotations
 
 import array
+import contextlib
 
 import cv2
 import numpy as np
@@ -46,6 +47,26 @@ def _start_vo_node(tmp_path) -> NodeProcess:
     return vo
 
 
+def _mono8(k: int, stamp: int, gray: np.ndarray) -> Image:
+    """A good frame: the demo image as mono8."""
+    return conv.numpy_to_image(gray, 'mono8', stamp, 'camera_optical')
+
+
+@contextlib.contextmanager
+def _fed_vo_node(tmp_path, info: dict):
+    """vo_node (once ready), a harness on its domain and a connected Feeder of the demo's
+    CameraInfo: (vo, harness, feed); the harness is closed and the node stopped after."""
+    vo = _start_vo_node(tmp_path)
+    h = Harness(DOMAIN)
+    try:
+        feed = Feeder(h, info)
+        feed.wait_connected()
+        yield vo, h, feed
+    finally:
+        h.close()
+        vo.stop()
+
+
 def _offline_positions(info: dict, frames: list) -> dict:
     """The offline core on the same frames (what ekf-vo-run gives): stamp -> camera
     position of every published frame."""
@@ -65,12 +86,7 @@ def _offline_positions(info: dict, frames: list) -> dict:
 
 def test_faults_then_good_frames(tmp_path, demo):
     info, frames = demo
-    vo = _start_vo_node(tmp_path)
-    h = Harness(DOMAIN)
-    try:
-        feed = Feeder(h, info)
-        feed.wait_connected()
-        good = lambda k, s, g: conv.numpy_to_image(g, 'mono8', s, 'camera_optical')  # noqa
+    with _fed_vo_node(tmp_path, info) as (vo, h, feed):
         dt = frames[1][0] - frames[0][0]
 
         def odom_after(stamps):
@@ -79,10 +95,10 @@ def test_faults_then_good_frames(tmp_path, demo):
 
         # A. images before any CameraInfo
         for stamp, gray in frames[:3]:
-            feed.img_pub.publish(good(0, stamp, gray))
+            feed.img_pub.publish(_mono8(0, stamp, gray))
         h.spin_for(0.5)
         # B. good frames -> tracking
-        stamps_b = feed.publish(frames[3:40], good, RATE_HZ)
+        stamps_b = feed.publish(frames[3:40], _mono8, RATE_HZ)
         feed.wait_last(stamps_b[-1])
         assert odom_after(stamps_b), 'no tracking on good frames'
 
@@ -111,17 +127,17 @@ def test_faults_then_good_frames(tmp_path, demo):
                             (frames[30][0] + 1, frames[30][1]),      # out of order
                             (frames[39][0] + 10 ** 13, frames[39][1])):  # far future
             h.spin_for(0.05)
-            feed.img_pub.publish(good(0, stamp, gray))
+            feed.img_pub.publish(_mono8(0, stamp, gray))
         h.spin_for(0.3)
-        stamps_c = feed.publish(frames[40:60], good, RATE_HZ)
+        stamps_c = feed.publish(frames[40:60], _mono8, RATE_HZ)
         feed.wait_last(stamps_c[-1])
         assert len(odom_after(stamps_c)) >= 0.9 * len(stamps_c), \
             'malformed input between good frames cost tracking'
 
         # D. lens cap: black frames, then good frames -> lost, re-bootstrap
         black = [(st, np.zeros_like(g)) for st, g in frames[60:66]]
-        feed.publish(black, good, RATE_HZ)
-        stamps_d = feed.publish(frames[66:110], good, RATE_HZ)
+        feed.publish(black, _mono8, RATE_HZ)
+        stamps_d = feed.publish(frames[66:110], _mono8, RATE_HZ)
         feed.wait_last(stamps_d[-1])
         got_d = odom_after(stamps_d)
         assert got_d and stamps_d.index(got_d[0]) <= RECOVERY_FRAMES
@@ -131,14 +147,14 @@ def test_faults_then_good_frames(tmp_path, demo):
         feed_half = [(st, cv2.resize(g, (w // 2, hgt // 2), interpolation=cv2.INTER_AREA))
                      for st, g in frames[110:160]]
         feed.info = half
-        stamps_e = feed.publish(feed_half, good, RATE_HZ)
+        stamps_e = feed.publish(feed_half, _mono8, RATE_HZ)
         feed.wait_last(stamps_e[-1])
         got_e = odom_after(stamps_e)
         assert got_e and stamps_e.index(got_e[0]) <= RECOVERY_FRAMES
 
         # F. time goes backwards (looping bag): reset, re-bootstrap at full resolution
         feed.info = info
-        stamps_f = feed.publish(frames[0:50], good, RATE_HZ)
+        stamps_f = feed.publish(frames[0:50], _mono8, RATE_HZ)
         feed.wait_last(stamps_f[-1])
         got_f = [m for m in feed.odom[-60:]]
         assert any(conv.stamp_to_ns(m.header.stamp) in set(stamps_f) for m in got_f)
@@ -171,9 +187,6 @@ def test_faults_then_good_frames(tmp_path, demo):
         for text in ('before any valid CameraInfo', 'image rejected', 'CameraInfo rejected',
                      'time went backwards'):
             assert text in log, f'no log line for: {text}'
-    finally:
-        h.close()
-        vo.stop()
 
 
 def test_camera_info_after_its_image_and_bad_calibrations_mid_stream(tmp_path, demo):
@@ -184,13 +197,8 @@ def test_camera_info_after_its_image_and_bad_calibrations_mid_stream(tmp_path, d
     info, frames = demo
     first_offline = min(_offline_positions(info, frames[:40]))
 
-    vo = _start_vo_node(tmp_path)
-    h = Harness(DOMAIN)
-    try:
-        feed = Feeder(h, info)
-        feed.wait_connected()
-        good = lambda k, s, g: conv.numpy_to_image(g, 'mono8', s, 'camera_optical')  # noqa
-        stamps = feed.publish(frames[:40], good, RATE_HZ, info_after=True)
+    with _fed_vo_node(tmp_path, info) as (vo, h, feed):
+        stamps = feed.publish(frames[:40], _mono8, RATE_HZ, info_after=True)
         feed.wait_last(stamps[-1])
         assert min(feed.odom_wall) == first_offline, 'the first frame was lost'
 
@@ -203,7 +211,7 @@ def test_camera_info_after_its_image_and_bad_calibrations_mid_stream(tmp_path, d
             elif bad_at.get(k) == 'nan':
                 msg.k = [float('nan')] + list(msg.k[1:])
             return msg
-        stamps = feed.publish(frames[40:70], good, RATE_HZ, info_after=True,
+        stamps = feed.publish(frames[40:70], _mono8, RATE_HZ, info_after=True,
                               make_info=make_info)
         feed.wait_last(stamps[-1])
         got = set(feed.odom_wall)
@@ -215,9 +223,6 @@ def test_camera_info_after_its_image_and_bad_calibrations_mid_stream(tmp_path, d
         values = {kv.key: kv.value for kv in feed.status[-1].status[0].values}
         assert values['resets'] == '0' and int(values['bad_camera_info']) == 2
         assert int(values['bad_camera_info_image']) == 2
-    finally:
-        h.close()
-        vo.stop()
     log = vo.output()
     assert log.count('started -> ') == 1
     assert 'Traceback' not in log
@@ -231,16 +236,11 @@ def test_a_two_second_gap_over_dds_relocalises_in_the_same_map(tmp_path, demo):
     info, frames = demo
     offline_pose = _offline_positions(info, frames[:121] + frames[181:230])
 
-    vo = _start_vo_node(tmp_path)
-    h = Harness(DOMAIN)
-    try:
-        feed = Feeder(h, info)
-        feed.wait_connected()
-        good = lambda k, s, g: conv.numpy_to_image(g, 'mono8', s, 'camera_optical')  # noqa
-        before = feed.publish(frames[:121], good, RATE_HZ)
+    with _fed_vo_node(tmp_path, info) as (vo, h, feed):
+        before = feed.publish(frames[:121], _mono8, RATE_HZ)
         feed.wait_last(before[-1])
         h.spin_for(0.5)
-        after = feed.publish(frames[181:230], good, RATE_HZ)
+        after = feed.publish(frames[181:230], _mono8, RATE_HZ)
         feed.wait_last(after[-1])
         got = set(feed.odom_wall)
         back = [k for k, s in enumerate(after) if s in got]
@@ -250,9 +250,6 @@ def test_a_two_second_gap_over_dds_relocalises_in_the_same_map(tmp_path, demo):
         h.spin_for(0.6)
         values = {kv.key: kv.value for kv in feed.status[-1].status[0].values}
         assert values['resets'] == '0'
-    finally:
-        h.close()
-        vo.stop()
     # the node's camera positions (odom -> base back to the optical frame) against the
     # offline run's on the same frames: the same world frame after the gap
     from ekf_vo.core.frames import optical_to_body_extrinsic
