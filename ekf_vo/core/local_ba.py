@@ -234,28 +234,21 @@ class _Window:
             self.C[self.free] += d[:, 3:]
         self.X += d_pts
 
-    def point_covariances(self, ne: _Normal) -> np.ndarray:
-        """Marginal covariance (m,3,3) of each point (Schur complement, no damping), from
-        the observations alone (the pose priors are this window's inputs, not its
-        findings)."""
+    def marginal_covariances(self, ne: _Normal) -> tuple[np.ndarray, np.ndarray]:
+        """Marginal covariances of each point (m,3,3) and each keyframe's (dtheta, dC)
+        (k,6,6; zeros for the fixed ones) from one Schur complement (no damping), of the
+        observations alone (the pose priors are this window's inputs, not its findings)."""
         Hpp_inv = np.linalg.inv(ne.Hpp + np.eye(3) * _INFO_REGULARISER)
+        T_cov = np.zeros((len(self.slot), 6, 6))
         if self.nc == 0:
-            return Hpp_inv
+            return Hpp_inv, T_cov
         W = ne.Hcp @ Hpp_inv                                       # (m,6F,3)
         S = (ne.Hcc if ne.Hcc_obs is None else ne.Hcc_obs) - _sum_outer(W, ne.Hcp)
         S_inv = np.linalg.pinv(S)
-        self.S_inv = S_inv
+        blocks = S_inv.reshape(len(self.free), 6, len(self.free), 6)
+        T_cov[self.free] = blocks[np.arange(len(self.free)), :, np.arange(len(self.free)), :]
         # cov(X_i) = Hpp_i^-1 + Hpp_i^-1 Hpc_i S^-1 Hcp_i Hpp_i^-1, with W_i = Hcp_i Hpp_i^-1
-        return Hpp_inv + np.transpose(W, (0, 2, 1)) @ (S_inv @ W)
-
-    def keyframe_covariances(self) -> np.ndarray:
-        """(k,6,6) marginal covariance of each keyframe (after point_covariances)."""
-        out = np.zeros((len(self.slot), 6, 6))
-        S_inv = getattr(self, 'S_inv', None)
-        for j, sl in enumerate(self.slot):
-            if sl >= 0 and S_inv is not None:
-                out[j] = S_inv[6 * sl:6 * sl + 6, 6 * sl:6 * sl + 6]
-        return out
+        return Hpp_inv + np.transpose(W, (0, 2, 1)) @ (S_inv @ W), T_cov
 
 
 def _scatter_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
@@ -301,10 +294,10 @@ def adjust_window(problem: WindowProblem, K: np.ndarray, sigma_px: float, huber_
                 break
     T_out = np.stack([geo.make_T(R.T, c) for R, c in zip(win.R_cw, win.C)])
     err1 = win.errors_px()
-    X_cov = win.point_covariances(ne)
+    X_cov, T_cov = win.marginal_covariances(ne)
     return WindowSolution(T_out, win.X.copy(), X_cov, err0, err1,
                           _median_per_point(err1, problem.pt_idx, len(win.X)), n_iter,
-                          (time.perf_counter() - t0) * 1e3, win.keyframe_covariances())
+                          (time.perf_counter() - t0) * 1e3, T_cov)
 
 
 def _median_per_point(err: np.ndarray, pt_idx: np.ndarray, m: int) -> np.ndarray:

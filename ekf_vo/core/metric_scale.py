@@ -259,7 +259,8 @@ class MetricScale:
         #: covariance [m^2] and its cross-covariance with lambda [m]
         self._P_pp = np.zeros((3, 3))
         self._c_lp = np.zeros(3)
-        self._settled = False            # rescaled about the camera from now on
+        #: rescaled about the camera from now on (map units: nothing is ever rescaled)
+        self._settled = not self.active
         #: while unsettled, the scale changes about this map point (map units), which
         #: stays where it was published (metres); with the two terms at that moment
         self._pivot = (np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3))
@@ -344,7 +345,6 @@ class MetricScale:
             self.filter.predict(self.cfg.scale_drift_per_sqrt_depth ** 2 * depths +
                                 self.cfg.scale_drift_per_sqrt_rad ** 2 *
                                 self._turn_rad(T[:3, :3]))
-        self._settled = True              # map units: p = p_map, nothing is rescaled
         self._last_R = T[:3, :3].copy()
         self.last_frame_ns = res.stamp_ns
         if self._last_p_map is None:
