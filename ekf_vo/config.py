@@ -205,6 +205,11 @@ class VoConfig(_Params):
     ba_fixed_keyframes: int = param(
         2, 'Oldest keyframes of the window held fixed: they fix position, orientation and '
         'scale (a monocular gauge needs two).', 'count', 2, 10, group='local_map')
+    ba_min_keyframe_points: int = param(
+        10, 'A keyframe fixes the adjustment\'s gauge, or is adjusted, only if it sees this '
+        'many of the window\'s points; one that sees fewer is held fixed, and a window '
+        'without ba_fixed_keyframes + 1 such keyframes is not adjusted (docs/method.md '
+        '§12.2).', 'count', 3, 10000, group='local_map')
     ba_min_parallax_deg: float = param(
         2.0, 'Only points whose rays from the window\'s keyframes span this angle are '
         'adjusted.', 'deg', 0.0, 45.0, group='local_map')

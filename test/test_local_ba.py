@@ -168,3 +168,74 @@ def test_a_pose_prior_enters_the_cost_and_holds_the_pose():
                         K, 1.0, 3.0, 30)
     assert np.allclose(sol.T_world_cam[3], T[3], atol=1e-6)
     assert np.linalg.norm(sol.T_world_cam[2, :3, 3] - T[2, :3, 3]) < 1e-3
+
+
+def _mapper_after_a_turn(rng, n_blind):
+    """A LocalMapper whose 6-keyframe window starts with `n_blind` keyframes that looked
+    elsewhere (they see none of the window's points: the window after a turn in place),
+    and a map of the points the others see (ideal pixels, exact poses)."""
+    from ekf_vo.config import VoConfig
+    from ekf_vo.core.local_map import LocalMapper
+    from ekf_vo.core.map import LandmarkMap
+    T, X, _, _, _ = _scene(rng, n_kf=6, n_pts=60)
+    ids = np.arange(100, 160)
+    landmarks = LandmarkMap(1000, 3)
+    landmarks.add(ids, X, 0, cov=np.tile(np.eye(3) * 1e-4, (60, 1, 1)))
+    mapper = LocalMapper(VoConfig(), K)
+    for k, Tk in enumerate(T):
+        Xc = X @ geo.invert_T(Tk)[:3, :3].T + geo.invert_T(Tk)[:3, 3]
+        px = Xc[:, :2] / Xc[:, 2:] @ K[:2, :2].T + K[:2, 2]
+        if k < n_blind:     # other tracks, none of them a window point
+            mapper.add_keyframe(k, Tk, np.arange(1000 * (k + 1), 1000 * (k + 1) + 30),
+                                rng.uniform(0, 400, (30, 2)))
+        else:
+            mapper.add_keyframe(k, Tk, ids, px)
+    return mapper, landmarks
+
+
+def test_keyframes_that_see_none_of_the_window_do_not_fix_its_gauge():
+    """After a turn in place the oldest keyframes of the window may see none of its
+    points. Holding them fixed left the window's gauge free: its marginal covariances
+    came out at 10^8 and entered the map and the published covariance. The gauge is
+    fixed by the oldest keyframes that see the points."""
+    rng = np.random.default_rng(3)
+    mapper, landmarks = _mapper_after_a_turn(rng, n_blind=2)
+    problem, point_ids, gauge = mapper._problem(landmarks)
+    assert gauge == 3                                    # keyframes 2 and 3 fix it
+    assert problem.fixed.tolist() == [True, True, True, True, False, False]
+    sol = adjust_window(problem, K, 1.0, 2.0, 5)
+    # a fixed gauge: every point's covariance stays at the scale of its parallax
+    assert np.max(np.linalg.eigvalsh(sol.X_cov)) < 1.0
+    assert np.all(np.isfinite(sol.T_cov))
+
+
+def test_a_window_that_cannot_fix_its_gauge_is_not_adjusted():
+    rng = np.random.default_rng(4)
+    mapper, landmarks = _mapper_after_a_turn(rng, n_blind=4)   # 2 keyframes see points
+    assert mapper._problem(landmarks) is None
+
+
+def test_singular_point_information_does_not_raise():
+    """Rays all but parallel: the absolute regulariser is lost against 10^8 entries; the
+    inverse must not raise in the worker, and must not give the depth a zero variance."""
+    from ekf_vo.core.local_ba import _inverse_3x3
+    v = np.array([1.0, 2.0, 3.0])
+    H = np.stack([np.outer(v, v) * 1e8, np.eye(3)])
+    inv = _inverse_3x3(H)
+    assert np.all(np.isfinite(inv))
+    assert np.linalg.eigvalsh(inv[0])[-1] > 0.1          # the unseen directions stay unsure
+    np.testing.assert_allclose(inv[1], np.eye(3))
+
+
+def test_an_adjustment_that_raises_is_skipped_and_counted():
+    from concurrent.futures import Future
+    from ekf_vo.core.local_map import _Pending
+    rng = np.random.default_rng(5)
+    mapper, landmarks = _mapper_after_a_turn(rng, n_blind=0)
+    future = Future()
+    future.set_exception(np.linalg.LinAlgError('Singular matrix'))
+    mapper._pending = _Pending(future, 3, list(mapper.keyframes), np.arange(100, 160), 1)
+    X_before = landmarks.X_world.copy()
+    assert len(mapper.harvest(3, landmarks)) == 0
+    assert mapper.stats.n_failed == 1 and mapper.stats.as_status()['ba_failed'] == 1
+    np.testing.assert_array_equal(landmarks.X_world, X_before)

@@ -215,7 +215,7 @@ class _Window:
         """Damped step (cameras (6F,), points (m,3)) by Schur complement."""
         Hpp = ne.Hpp + lam * np.einsum('mii->mi', ne.Hpp)[:, :, None] * np.eye(3) + \
             np.eye(3) * _INFO_REGULARISER
-        Hpp_inv = np.linalg.inv(Hpp)
+        Hpp_inv = _inverse_3x3(Hpp)
         if self.nc == 0:
             return np.zeros(0), -np.einsum('mij,mj->mi', Hpp_inv, ne.gp)
         Hcc = ne.Hcc + lam * np.diag(np.diag(ne.Hcc))
@@ -238,7 +238,7 @@ class _Window:
         """Marginal covariances of each point (m,3,3) and each keyframe's (dtheta, dC)
         (k,6,6; zeros for the fixed ones) from one Schur complement (no damping), of the
         observations alone (the pose priors are this window's inputs, not its findings)."""
-        Hpp_inv = np.linalg.inv(ne.Hpp + np.eye(3) * _INFO_REGULARISER)
+        Hpp_inv = _inverse_3x3(ne.Hpp + np.eye(3) * _INFO_REGULARISER)
         T_cov = np.zeros((len(self.slot), 6, 6))
         if self.nc == 0:
             return Hpp_inv, T_cov
@@ -249,6 +249,18 @@ class _Window:
         T_cov[self.free] = blocks[np.arange(len(self.free)), :, np.arange(len(self.free)), :]
         # cov(X_i) = Hpp_i^-1 + Hpp_i^-1 Hpc_i S^-1 Hcp_i Hpp_i^-1, with W_i = Hcp_i Hpp_i^-1
         return Hpp_inv + np.transpose(W, (0, 2, 1)) @ (S_inv @ W), T_cov
+
+
+def _inverse_3x3(H: np.ndarray) -> np.ndarray:
+    """Inverses of a stack of 3x3 point information blocks. Where one is singular in
+    floating point (rays all but parallel: the absolute regulariser is lost against
+    entries of 10^8), the regulariser is made relative to its trace: the depth then gets
+    a huge variance (honest), never the zero a pseudo-inverse would give it."""
+    try:
+        return np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        scale = np.einsum('mii->m', H)[:, None, None]
+        return np.linalg.inv(H + np.eye(3) * (_INFO_REGULARISER * (1.0 + scale)))
 
 
 def _scatter_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:

@@ -66,6 +66,7 @@ class AdjustmentStats:
     last_rms_px: float = 0.0
     n_culled: int = 0
     n_keyframes: int = 0
+    n_failed: int = 0             #: adjustments that raised (numerically): skipped
 
     def as_status(self) -> dict:
         """The figures ~/status reports (times in ms, rounded)."""
@@ -74,7 +75,7 @@ class AdjustmentStats:
                 'ba_mean_ms': round(self.total_ms / self.n_runs, 1) if self.n_runs else 0.0,
                 'ba_wait_ms_total': round(self.wait_ms, 1), 'ba_frames_waited': self.n_waits,
                 'ba_last_points': self.last_points, 'ba_last_rms_px': round(self.last_rms_px, 2),
-                'ba_culled': self.n_culled}
+                'ba_culled': self.n_culled, 'ba_failed': self.n_failed}
 
 
 @dataclass
@@ -83,6 +84,7 @@ class _Pending:
     apply_at: int                 #: frame index at which the result is applied
     keyframes: list               #: the window's Keyframe objects (poses written back)
     point_ids: np.ndarray
+    gauge: int                    #: the newest of the keyframes that fix the gauge
 
 
 class LocalMapper:
@@ -159,8 +161,10 @@ class LocalMapper:
         return False
 
     # ------------------------------------------------------------------ adjustment
-    def _problem(self, landmarks: LandmarkMap) -> tuple[WindowProblem, np.ndarray] | None:
-        """The window's problem: map points seen by at least two of its keyframes."""
+    def _problem(self, landmarks: LandmarkMap
+                 ) -> tuple[WindowProblem, np.ndarray, int] | None:
+        """The window's problem: map points seen by at least two of its keyframes; and the
+        index of the newest keyframe that fixes its gauge."""
         kfs = self.keyframes
         seen = [kf.ids[landmarks.contains(kf.ids)] for kf in kfs]
         all_ids, counts = np.unique(np.concatenate(seen), return_counts=True)
@@ -185,15 +189,39 @@ class LocalMapper:
         cam_idx, pt_idx, px = cam_idx[keep], remap[pt_idx[keep]], px[keep]
         if len(point_ids) == 0:
             return None
-        fixed = np.zeros(len(kfs), bool)
-        fixed[:self.cfg.ba_fixed_keyframes] = True
+        gauge = self._gauge(cam_idx, len(kfs))
+        if gauge is None:
+            return None
+        fixed, gauge_index = gauge
         prior = None
         if self.cfg.ba_pose_prior_weight > 0:
             prior = np.stack([kf.prior_info if kf.prior_info is not None else np.zeros((6, 6))
                               for kf in kfs])
         problem = WindowProblem(np.stack([kf.T_world_cam for kf in kfs]), fixed, X.copy(),
                                 cam_idx, pt_idx, px, prior)
-        return problem, point_ids
+        return problem, point_ids, gauge_index
+
+    def _gauge(self, cam_idx: np.ndarray, n_keyframes: int
+               ) -> tuple[np.ndarray, int] | None:
+        """Which keyframes are held fixed, and the newest of those that fix the gauge.
+
+        The gauge (position, orientation and scale of a monocular window) is fixed by the
+        oldest ba_fixed_keyframes keyframes that see at least ba_min_keyframe_points of
+        the window's points; the keyframes before them are held too. A keyframe
+        that sees fewer is held as well: it can neither fix the gauge nor be estimated.
+        After a turn in place the oldest keyframes may see none of the points the window
+        adjusts; fixing them anyway left the window free to slide and scale, and its
+        marginal covariances (10^8 map units^2) entered the map (docs/method.md §12.2).
+        None: fewer than ba_fixed_keyframes + 1 keyframes see enough points."""
+        c = self.cfg
+        seen = np.bincount(cam_idx, minlength=n_keyframes) >= c.ba_min_keyframe_points
+        order = np.flatnonzero(seen)
+        if len(order) <= c.ba_fixed_keyframes:
+            return None
+        gauge_index = int(order[c.ba_fixed_keyframes - 1])
+        fixed = ~seen
+        fixed[:gauge_index + 1] = True
+        return fixed, gauge_index
 
     def _wide_enough(self, X: np.ndarray, cam_idx: np.ndarray, pt_idx: np.ndarray
                      ) -> np.ndarray:
@@ -214,14 +242,14 @@ class LocalMapper:
         built = self._problem(landmarks)
         if built is None:
             return
-        problem, point_ids = built
+        problem, point_ids, gauge_index = built
         c = self.cfg
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix='ekf_vo_ba')
         future = self._pool.submit(adjust_window, problem, self.K, c.pixel_sigma_px,
                                    c.ba_huber_px, c.ba_max_iterations)
         self._pending = _Pending(future, frame_index + c.ba_apply_after_frames,
-                                 list(self.keyframes), point_ids)
+                                 list(self.keyframes), point_ids, gauge_index)
 
     def harvest(self, frame_index: int, landmarks: LandmarkMap) -> np.ndarray:
         """Apply a finished adjustment that is due (waiting for it if needed).
@@ -235,7 +263,14 @@ class LocalMapper:
             self.stats.wait_ms += (time.perf_counter() - t) * 1e3
             self.stats.n_waits += 1
         self._pending = None
-        sol: WindowSolution = pend.future.result()
+        try:
+            sol: WindowSolution = pend.future.result()
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+            # a numerically broken window is skipped: the map stays as it was
+            self.stats.n_failed += 1
+            logger.warning('local map: adjustment skipped (%s); %d so far', exc,
+                           self.stats.n_failed)
+            return np.zeros(0, np.int64)
         return self._apply(sol, pend, landmarks)
 
     def _apply(self, sol: WindowSolution, pend: _Pending, landmarks: LandmarkMap
@@ -253,7 +288,7 @@ class LocalMapper:
         landmarks.remove(culled)
         # the refined points are now relative to the window's fixed keyframes: they take
         # the newest fixed one's anchor (docs/method.md §14)
-        gauge = pend.keyframes[max(0, min(c.ba_fixed_keyframes, len(pend.keyframes)) - 1)]
+        gauge = pend.keyframes[pend.gauge]
         landmarks.refine(pend.point_ids[~bad], sol.X_world[~bad], sol.X_cov[~bad],
                          gauge.anchor)
         s = self.stats
