@@ -87,6 +87,10 @@ class VoConfig(_Params):
     bootstrap_min_parallax_deg: float = param(
         2.0, 'Median parallax angle the bootstrap pair must reach.', 'deg', 0.1, 45.0,
         group='bootstrap')
+    bootstrap_point_min_parallax_deg: float = param(
+        1.0, 'A point of the first map (two-view or multi-view start) is kept only if its '
+        'rays differ by this angle; the pair\'s pose comes from the same rays, so only the '
+        'pixel noise limits it.', 'deg', 0.01, 45.0, group='bootstrap')
     bootstrap_min_inliers: int = param(
         60, 'Essential-matrix inliers (with valid triangulation) the pair must have.',
         'count', 8, 10000, group='bootstrap')

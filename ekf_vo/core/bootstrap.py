@@ -232,7 +232,7 @@ class TwoViewBootstrap:
     Args:
         cfg: uses bootstrap_min_parallax_deg, bootstrap_min_inliers, bootstrap_ransac_px,
             bootstrap_baseline_m, triangulation_max_reproj_px,
-            triangulation_min_parallax_deg.
+            bootstrap_point_min_parallax_deg.
         K: (3, 3) pinhole intrinsics of the IDEAL (undistorted) pixel coordinates.
     """
 
@@ -292,7 +292,7 @@ class TwoViewBootstrap:
         T_cur = _se3(R, t)
         tri = triangulate_points(T_ref, T_cur, p_ref, p_cur, self.K,
                                  cfg.triangulation_max_reproj_px,
-                                 cfg.triangulation_min_parallax_deg)
+                                 cfg.bootstrap_point_min_parallax_deg)
         good_geom = inl & np.isfinite(tri.reproj_err_px) & \
             (tri.reproj_err_px < cfg.triangulation_max_reproj_px)
         med_par = float(np.median(tri.parallax_deg[good_geom])) if good_geom.any() else 0.0
@@ -384,7 +384,7 @@ class TwoViewBootstrap:
                                 n_common=n_common)
         tri = triangulate_points(T_ref_world, T_cur_world, p_ref, p_cur, self.K,
                                  cfg.triangulation_max_reproj_px,
-                                 cfg.triangulation_min_parallax_deg)
+                                 cfg.bootstrap_point_min_parallax_deg)
         good_geom = np.isfinite(tri.reproj_err_px) & \
             (tri.reproj_err_px < cfg.triangulation_max_reproj_px)
         med_par = float(np.median(tri.parallax_deg[good_geom])) if good_geom.any() else 0.0

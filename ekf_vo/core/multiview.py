@@ -292,7 +292,7 @@ class MultiViewBootstrap:
             tri = triangulate_points(geo.invert_T(old.T_world_cam), T_cur_w,
                                      old.px[i_old], kf.px[rows_cur], self.K,
                                      c.triangulation_max_reproj_px,
-                                     c.triangulation_min_parallax_deg)
+                                     c.bootstrap_point_min_parallax_deg)
             for tid, X in zip(common[tri.valid], tri.X_world[tri.valid]):
                 self.points[int(tid)] = X
             todo[rows_cur[tri.valid]] = False
