@@ -175,6 +175,24 @@ class VoConfig(_Params):
         400, 'At most this many map points enter one update (spread over the image).',
         'count', 6, 100000, group='ransac')
 
+    # ---- tracks without depth (ekf_vo/core/bearing.py) ----
+    bearing_max_map_points: int = param(
+        40, 'In a frame with fewer map matches than this (a turn in place leaves the map '
+        'behind), tracks without a map point are measured too, as rays of unknown depth '
+        '(docs/method.md §15.8); 0 = never.', 'count', 0, 100000, group='map')
+    bearing_max_points: int = param(
+        60, 'At most this many rays without depth in one update (the oldest tracks).',
+        'count', 1, 100000, group='map')
+    bearing_max_baseline_ratio: float = param(
+        0.1, 'A ray is measured only while the camera is within this share of the median '
+        'depth of the map from where the ray was first seen: with a baseline its unknown '
+        'depth trades the rotation against the translation, and the linearised depth '
+        'spread no longer holds (docs/method.md §15.8).', '', 0.0, 10.0, group='map')
+    bearing_depth_rel_sigma: float = param(
+        1.0, 'Std of a ray\'s unknown inverse depth relative to the inverse of the median '
+        'depth of the map in view (1: from a third of that depth to infinity at 2 sigma).',
+        '', 0.01, 100.0, group='map')
+
     # ---- map (ekf_vo/core/map.py, triangulation.py) ----
     triangulation_min_parallax_deg: float = param(
         1.0, 'A new point is triangulated once its rays differ by this angle.', 'deg',

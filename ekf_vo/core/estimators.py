@@ -22,7 +22,7 @@ import numpy as np
 
 from ..config import VoConfig
 from .ekf import VEL, CameraEKF
-from .observation import ReprojectionModel
+from .observation import ReprojectionModel, whitening
 from .pnp import solve_epnp
 from .point_filter import PointFilter
 from .robust_update import RansacSettings, robust_update
@@ -39,12 +39,30 @@ class FrameMatches:
     #: (a,) pixel std of each map measurement (pixel noise + the point's own uncertainty,
     #: docs/method.md §12.3); None = pixel_sigma_px for all
     sigma_map: np.ndarray | None = None
+    #: (a,2,2) [px^2] noise added to each map measurement's pixel noise: the spread of a
+    #: point without depth along its epipolar line (bearing.py); None = none
+    extra_cov_px2: np.ndarray | None = None
 
     def map_sigmas(self, pixel_sigma_px: float) -> np.ndarray:
         """(a,) pixel std of the map measurements."""
         if self.sigma_map is None:
             return np.full(len(self.X_map), float(pixel_sigma_px))
         return np.asarray(self.sigma_map, float)
+
+    def map_measurements(self, intrinsics: np.ndarray, pixel_sigma_px: float
+                         ) -> tuple[ReprojectionModel, np.ndarray, np.ndarray]:
+        """(model, pixels (a,2), pixel std (a,)) of the map measurements for the robust
+        update. With extra noise, each measurement's sigma_i^2 I + C_i is whitened to
+        pixel_sigma_px: the model and the pixels both carry W_i (observation.py)."""
+        model = ReprojectionModel.of_map_points(intrinsics, self.X_map)
+        sigma = self.map_sigmas(pixel_sigma_px)
+        z = np.asarray(self.z_map, float).reshape(-1, 2)
+        if self.extra_cov_px2 is None or not len(z):
+            return model, z, sigma
+        R = self.extra_cov_px2 + (sigma ** 2)[:, None, None] * np.eye(2)
+        model.whiten = whitening(R, pixel_sigma_px)
+        z = np.einsum('nij,nj->ni', model.whiten, z)
+        return model, z, np.full(len(z), float(pixel_sigma_px))
 
 
 @dataclass
@@ -67,9 +85,9 @@ class EkfEstimator:
         self.ekf.predict(dt, c.accel_sigma, c.angular_accel_sigma, c.fading_memory)
 
     def update(self, matches: FrameMatches, rng: np.random.Generator) -> UpdateOutcome:
-        model = ReprojectionModel.of_map_points(self.ekf.intrinsics, matches.X_map)
-        x, P, out = robust_update(self.ekf.x, self.ekf.P, matches.z_map, model,
-                                  matches.map_sigmas(self.cfg.pixel_sigma_px), rng,
+        model, z, sigma = matches.map_measurements(self.ekf.intrinsics,
+                                                   self.cfg.pixel_sigma_px)
+        x, P, out = robust_update(self.ekf.x, self.ekf.P, z, model, sigma, rng,
                                   self.settings)
         self.ekf.x, self.ekf.P, self.ekf.last_update = x, P, out.stats
         return UpdateOutcome(out.inliers, np.zeros(0, bool))
@@ -89,12 +107,16 @@ class JointEstimator(EkfEstimator):
 
     def update(self, matches: FrameMatches, rng: np.random.Generator) -> UpdateOutcome:
         pts = self.points
+        map_model, z_map, sigma_map = matches.map_measurements(self.ekf.intrinsics,
+                                                               self.cfg.pixel_sigma_px)
         model = pts.measurements(matches.X_map, matches.point_rows)
-        z = np.concatenate((np.asarray(matches.z_map, float).reshape(-1, 2),
-                            np.asarray(matches.z_points, float).reshape(-1, 2)))
+        b = len(matches.point_rows)
+        if map_model.whiten is not None:       # the filter points' noise is isotropic
+            model.whiten = np.concatenate((map_model.whiten,
+                                           np.broadcast_to(np.eye(2), (b, 2, 2))))
+        z = np.concatenate((z_map, np.asarray(matches.z_points, float).reshape(-1, 2)))
         x, P = pts.joint(self.ekf)
-        sigma = np.concatenate((matches.map_sigmas(self.cfg.pixel_sigma_px),
-                                np.full(len(matches.z_points), self.cfg.pixel_sigma_px)))
+        sigma = np.concatenate((sigma_map, np.full(b, self.cfg.pixel_sigma_px)))
         x, P, out = robust_update(x, P, z, model, sigma, rng, self.settings)
         pts.set_joint(self.ekf, x, P)
         self.ekf.last_update = out.stats

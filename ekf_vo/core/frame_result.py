@@ -33,6 +33,7 @@ class FrameResult:
     n_inliers: int = 0
     n_new_points: int = 0
     n_found_again: int = 0                  #: map points found again (tracks from now)
+    n_rays: int = 0                         #: of the inliers, rays without depth (bearing.py)
     nis_per_dof: float = 0.0               #: normalised innovation squared / (2 n)
     map_size: int = 0
     bootstrapped: bool = False              #: this frame completed a (re-)bootstrap

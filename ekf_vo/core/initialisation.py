@@ -126,10 +126,10 @@ class Initialisation:
             tid = int(tracks.ids[k])
             for (f, _, src_px, T), row in zip(sources, rows):
                 if tid in row:
-                    self.growth.add(tid, f, src_px[row[tid]], T)
+                    self.growth.add(tid, f, src_px[row[tid]], T, anchor)
                     break
             else:
-                self.growth.add(tid, self.frame_index, px[k], T_world_cur)
+                self.growth.add(tid, self.frame_index, px[k], T_world_cur, anchor)
         if self.local_map is not None:
             for k, (f, ids, src_px, T) in enumerate(sources):
                 self.local_map.add_keyframe(f, T, ids, src_px, anchor if k else

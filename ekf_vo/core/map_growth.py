@@ -32,6 +32,8 @@ class MapGrowth:
         self._frame: dict[int, int] = {}         # id -> frame index of first observation
         self._px: dict[int, np.ndarray] = {}     # id -> ideal pixel there
         self._bearing: dict[int, np.ndarray] = {}  # id -> world bearing there
+        #: id -> (published covariance, camera centre) of the frame of first observation
+        self._anchor: dict[int, tuple] = {}
         #: tracks never to triangulate (failed with a wide baseline, culled, rejected)
         self.banned: set[int] = set()
         self._T_world_cam_at: dict[int, np.ndarray] = {}
@@ -40,16 +42,44 @@ class MapGrowth:
         self._T_world_cam_at[frame_index] = T_world_cam
 
     def add(self, tid: int, frame_index: int, px_ideal: np.ndarray,
-            T_world_cam: np.ndarray) -> None:
-        """A candidate first seen at `frame_index` (whose pose must be remembered)."""
+            T_world_cam: np.ndarray, anchor: tuple) -> None:
+        """A candidate first seen at `frame_index` (whose pose must be remembered), whose
+        pose had the published (covariance, centre) `anchor`."""
         self._frame[tid] = frame_index
         self._px[tid] = np.asarray(px_ideal, float)
         self._bearing[tid] = T_world_cam[:3, :3] @ self.camera.unproject(px_ideal)[0]
+        self._anchor[tid] = anchor
 
     def drop(self, tid: int) -> None:
         self._frame.pop(tid, None)
         self._px.pop(tid, None)
         self._bearing.pop(tid, None)
+        self._anchor.pop(tid, None)
+
+    def rays(self, ids: np.ndarray, frame_index: int, centre: np.ndarray,
+             max_baseline: float, max_n: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The candidates among the track ids first seen before `frame_index` from a
+        camera centre within max_baseline of `centre`, oldest first, at most max_n:
+        (rows into ids, centres (b,3), world bearings (b,3), anchor covariances
+        (b,6,6), anchor centres (b,3)) (bearing.py)."""
+        rows, first = [], []
+        for k, tid in enumerate(ids):
+            f = self._frame.get(int(tid), frame_index)
+            if f < frame_index and np.linalg.norm(
+                    self._T_world_cam_at[f][:3, 3] - centre) <= max_baseline:
+                rows.append(k)
+                first.append(f)
+        rows = [rows[i] for i in np.argsort(first, kind='stable')[:max_n]]
+        if not rows:
+            return (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
+                    np.zeros((0, 6, 6)), np.zeros((0, 3)))
+        tids = [int(ids[k]) for k in rows]
+        centres = np.array([self._T_world_cam_at[self._frame[t]][:3, 3] for t in tids])
+        return (np.array(rows, np.int64), centres,
+                np.array([self._bearing[t] for t in tids]),
+                np.array([self._anchor[t][0] for t in tids]),
+                np.array([self._anchor[t][1] for t in tids]))
 
     def two_view_covariances(self, X_world: np.ndarray, T_world_a: np.ndarray,
                              T_world_b: np.ndarray) -> np.ndarray:
@@ -74,7 +104,7 @@ class MapGrowth:
             if tid in self.banned:
                 continue
             if tid not in self._frame:
-                self.add(tid, frame_index, px[k], T_world_cam)
+                self.add(tid, frame_index, px[k], T_world_cam, anchor)
             elif self._frame[tid] != frame_index:
                 cand_rows.append(k)
         n_added = 0

@@ -171,21 +171,31 @@ class WorldCovariance:
 
     def compose(self, filter_cov: np.ndarray, T_world_cam: np.ndarray, landmarks,
                 ids: np.ndarray, X_world: np.ndarray, sigma_px: np.ndarray | None,
-                inflation: float = 1.0, remember: bool = True) -> np.ndarray:
+                inflation: float = 1.0, remember: bool = True,
+                ray_anchors: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Published 6x6 covariance of a tracked frame: the filter's `filter_cov` plus
         the map's, from the update's inlier landmarks `ids` at X_world (n,3) measured
-        with pixel noise sigma_px (n,) (None: the nominal). `inflation` (health.py)
-        scales what this frame measured (the filter's and the points' terms), not the
-        anchors: those were inflated when the poses they come from were published.
-        `remember`: False for a frame that is not published (a failed frame): new points
-        and a re-bootstrap then take the last published covariance."""
+        with pixel noise sigma_px (n,) (None: the nominal) and the anchors (covariances
+        (b,6,6), centres (b,3)) of its inlier rays without depth (bearing.py).
+        `inflation` (health.py) scales what this frame measured (the filter's and the
+        points' terms), not the anchors: those were inflated when the poses they come
+        from were published. `remember`: False for a frame that is not published (a
+        failed frame): new points and a re-bootstrap then take the last published
+        covariance."""
         cov = filter_cov * inflation
-        if self.enabled and len(ids):
-            sigma = np.full(len(ids), self.sigma_px) if sigma_px is None else sigma_px
-            J_pose, J_X, front = pose_point_jacobians(self.K, T_world_cam, X_world)
-            self.points_part = point_consider_covariance(
-                J_pose[front], J_X[front], sigma[front], landmarks.covariances(ids[front]))
+        n_rays = 0 if ray_anchors is None else len(ray_anchors[0])
+        if self.enabled and len(ids) + n_rays:
+            self.points_part = np.zeros((6, 6))
+            if len(ids):
+                sigma = np.full(len(ids), self.sigma_px) if sigma_px is None else sigma_px
+                J_pose, J_X, front = pose_point_jacobians(self.K, T_world_cam, X_world)
+                self.points_part = point_consider_covariance(
+                    J_pose[front], J_X[front], sigma[front],
+                    landmarks.covariances(ids[front]))
             a_cov, a_c = landmarks.anchors(ids)
+            if n_rays:
+                a_cov = np.concatenate((a_cov, ray_anchors[0]))
+                a_c = np.concatenate((a_c, ray_anchors[1]))
             self.anchor_part = anchor_covariance(a_cov, a_c, T_world_cam[:3, 3])
             cov = inflation * (filter_cov + self.points_part) + self.anchor_part
         if remember:

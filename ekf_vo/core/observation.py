@@ -80,12 +80,17 @@ class ReprojectionModel:
     """Stacked reprojection model of n measurements for one update.
 
     anchor (n,3): X^W for map points, c for filter points; ray (n,3): 0 / unit bearing m;
-    col (n,): -1 for map points, the state column of rho for filter points."""
+    col (n,): -1 for map points, the state column of rho for filter points.
+    whiten (n,2,2) or None: W_i applied to each predicted pixel and its Jacobian rows, so
+    that a measurement given as W_i z_i has the nominal isotropic noise although its own
+    noise R_i is not (W_i = sigma L_i^-1, L_i L_i^T = R_i: `whitening`). W is a constant
+    linear map, so the innovation is W_i (z_i - h_i(x)) (docs/method.md §15.8)."""
 
     intrinsics: np.ndarray
     anchor: np.ndarray
     ray: np.ndarray
     col: np.ndarray
+    whiten: np.ndarray | None = None
 
     @classmethod
     def of_map_points(cls, intrinsics: np.ndarray, X_world: np.ndarray
@@ -100,7 +105,8 @@ class ReprojectionModel:
 
     def subset(self, rows: np.ndarray) -> 'ReprojectionModel':
         return ReprojectionModel(self.intrinsics, self.anchor[rows], self.ray[rows],
-                                 self.col[rows])
+                                 self.col[rows],
+                                 None if self.whiten is None else self.whiten[rows])
 
     def rho(self, x: np.ndarray) -> np.ndarray:
         """(n,) inverse depths (1 for map points) from a state x (D,)."""
@@ -119,6 +125,10 @@ class ReprojectionModel:
         v = rho[:, None] * d + self.ray
         X_cam, dXc_dq = rotated_by_quat_conj_jacobian(x[QUAT], v)
         px, in_front, J_pi = pinhole_project(X_cam, self.intrinsics, with_jacobian)
+        if self.whiten is not None:
+            px = np.einsum('nij,nj->ni', self.whiten, px)
+            if with_jacobian:
+                J_pi = self.whiten @ J_pi
         if not with_jacobian:
             return px, in_front, None
         n = len(v)
@@ -149,7 +159,10 @@ class ReprojectionModel:
         k = self.intrinsics
         u = k[0, 0] * X_cam[..., 0] * inv_z + k[0, 2]
         w = k[1, 1] * X_cam[..., 1] * inv_z + k[1, 2]
-        return np.stack((u, w), axis=-1)
+        px = np.stack((u, w), axis=-1)
+        if self.whiten is not None:
+            px = np.einsum('nij,hnj->hni', self.whiten, px)
+        return px
 
 
 def projected_variance_px2(X_world: np.ndarray, cov_world: np.ndarray,
@@ -164,3 +177,10 @@ def projected_variance_px2(X_world: np.ndarray, cov_world: np.ndarray,
     J = J_pi @ R_wc.T                                     # d pixel / d X^W  (n,2,3)
     var = np.einsum('nij,njk,nik->n', J, cov_world, J) / 2.0
     return np.where(front, np.maximum(var, 0.0), 0.0)
+
+
+def whitening(cov_px2: np.ndarray, sigma_px: float) -> np.ndarray:
+    """W_i = sigma L_i^-1 (n,2,2) with L_i L_i^T = cov_px2[i]: W_i cov_i W_i^T = sigma^2 I,
+    what ReprojectionModel.whiten applies (measurements with a 2x2 noise each become
+    measurements with the nominal one)."""
+    return sigma_px * np.linalg.inv(np.linalg.cholesky(cov_px2))

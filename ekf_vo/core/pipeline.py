@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from ..config import VoConfig
+from .bearing import BearingMeasurements, depth_spread_px2
 from .bootstrap import H_OVER_E_RATIO, TwoViewBootstrap
 from .camera import PinholeCamera
 from .ekf import ANG, POS, VEL, CameraEKF, FilterError
@@ -246,24 +247,29 @@ class VisualOdometry(Initialisation):
                           n_matches=len(rows), timings_ms=timings)
         sigma = map_measurement_sigmas(self.cfg, self._noise, self.map, tracks.ids[rows],
                                        X, self.ekf.T_world_cam, self.camera.K)
+        rays = self._rays_without_depth(tracks, px, has_point, X)
         try:
-            inlier_rows = self._update(tracks, px, rows, X, sigma)
+            inlier_rows = self._update(tracks, px, rows, X, sigma, rays)
         except (FilterError, np.linalg.LinAlgError) as exc:
             self.reset(f'filter failure: {exc}')
             res.state, res.message = self.state, f'lost: {exc}'
             return res
         timings['update'] = (time.perf_counter() - t) * 1e3
         res.n_inliers = len(inlier_rows)
+        res.n_rays = int(np.count_nonzero(self._ray_inliers))
 
         # ---- tracking quality, and the published covariance (docs/method.md §14-15)
-        n_found = res.n_inliers / max(len(rows), 1) * np.count_nonzero(has_point)
+        n_found = np.count_nonzero(self._map_inliers) / max(len(rows), 1) * \
+            np.count_nonzero(has_point)
         if self._judge(res, n_found, n_in_view):
             return res
         mi = self._map_inliers
         self._published_cov = self.world_cov.compose(
             self.ekf.pose_covariance(), self.ekf.T_world_cam, self.map, tracks.ids[rows][mi],
             X[mi], None if sigma is None else sigma[mi], self._inflation,
-            remember=self._failed_frames == 0)
+            remember=self._failed_frames == 0,
+            ray_anchors=None if rays is None else (rays.anchor_cov[self._ray_inliers],
+                                                   rays.anchor_c[self._ray_inliers]))
 
         # ---- map growth, keyframes
         t = time.perf_counter()
@@ -310,6 +316,12 @@ class VisualOdometry(Initialisation):
         report = self.health.assess(upd.nis, 2 * upd.n_used, n_found, n_in_view)
         self._inflation = report.inflation
         res.health, res.health_reason = report.status.value, report.reason
+        if res.n_rays:
+            # the map no longer holds the pose: its position rests on the motion model
+            res.health = Health.DEGRADED.value
+            res.health_reason = '; '.join(filter(None, (
+                report.reason, f'{res.n_rays} tracks without depth hold the orientation '
+                f'({res.n_inliers - res.n_rays} map points)')))
         res.variance_factor, res.found_share = report.variance_factor, report.found_share
         return False
 
@@ -393,29 +405,68 @@ class VisualOdometry(Initialisation):
             return ids, px_pred
         return np.concatenate((predicted[0], ids)), np.concatenate((predicted[1], px_pred))
 
+    def _rays_without_depth(self, tracks: Tracks, px: np.ndarray, has_point: np.ndarray,
+                            X: np.ndarray) -> BearingMeasurements | None:
+        """The tracks without a map point to measure as rays of unknown depth (bearing.py,
+        docs/method.md §15.8): only in a frame with fewer than bearing_max_map_points
+        map matches, and only with the hybrid EKF / IEKF. None = none."""
+        c = self.cfg
+        T = self.ekf.T_world_cam
+        if len(X) >= 3:
+            depth = (X - T[:3, 3]) @ T[:3, 2]
+            if np.any(depth > 0):
+                self._depth_guess = float(np.median(depth[depth > 0]))
+        if len(X) >= c.bearing_max_map_points or c.estimator == 'epnp' or \
+                self.points is not None or self._depth_guess is None:
+            return None
+        rows, centres, bearings, a_cov, a_c = self.growth.rays(
+            tracks.ids, self.frame_index, T[:3, 3],
+            c.bearing_max_baseline_ratio * self._depth_guess, c.bearing_max_points)
+        keep = ~has_point[rows]
+        if not np.any(keep):
+            return None
+        rho0 = 1.0 / self._depth_guess
+        X_ray, cov = depth_spread_px2(centres[keep], bearings[keep], T, self.camera.K, rho0,
+                                      c.bearing_depth_rel_sigma * rho0)
+        # the first observation's pixel noise fixed the ray: the update adds this one's
+        cov += np.eye(2) * c.pixel_sigma_px ** 2
+        return BearingMeasurements(rows[keep], X_ray, cov, a_cov[keep], a_c[keep])
+
     def _update(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
-                X: np.ndarray, sigma: np.ndarray | None) -> np.ndarray:
+                X: np.ndarray, sigma: np.ndarray | None,
+                rays: BearingMeasurements | None = None) -> np.ndarray:
         """The estimator's update (estimators.py) with the map matches `rows` (pixel std
-        `sigma`, None = pixel_sigma_px) and, with map_refinement: filter, the tracked
-        in-filter points; records the map points' verdicts (culling). Returns the inlier
-        track rows."""
-        matches = FrameMatches(px[rows], X, sigma_map=sigma)
+        `sigma`, None = pixel_sigma_px), the rays without depth `rays` and, with
+        map_refinement: filter, the tracked in-filter points; records the map points'
+        verdicts (culling). Returns the inlier track rows."""
+        a = len(rows)
+        if rays is None:
+            matches = FrameMatches(px[rows], X, sigma_map=sigma)
+        else:
+            nominal = np.full(a, self.cfg.pixel_sigma_px) if sigma is None else sigma
+            matches = FrameMatches(
+                np.concatenate((px[rows], px[rays.rows])), np.concatenate((X, rays.X_world)),
+                sigma_map=np.concatenate((nominal, np.full(len(rays), self.cfg.pixel_sigma_px))),
+                extra_cov_px2=np.concatenate((np.zeros((a, 2, 2)), rays.cov_px2)))
         f_tracks = np.zeros(0, np.int64)
         if self.points is not None:
             pt_rows = self.points.rows_of(tracks.ids)
             f_tracks = np.flatnonzero(pt_rows >= 0)
             matches.z_points, matches.point_rows = px[f_tracks], pt_rows[f_tracks]
         out = self.estimator.update(matches, self.rng)
-        self._map_inliers = out.map_inliers
+        self._map_inliers = out.map_inliers[:a]
+        self._ray_inliers = out.map_inliers[a:]
         if self.cfg.measurement_noise == 'adaptive':
-            inl = out.map_inliers
+            inl = self._map_inliers
             learn_from_update(self.map, self.ekf, tracks.ids[rows][inl], px[rows][inl],
                               X[inl], self.cfg.pixel_sigma_px)
         if len(rows):
-            culled = self.map.record_observations(tracks.ids[rows], out.map_inliers,
+            culled = self.map.record_observations(tracks.ids[rows], self._map_inliers,
                                                   self.frame_index)
             self.growth.banned.update(int(i) for i in culled)
-        return np.concatenate((rows[out.map_inliers], f_tracks[out.point_inliers]))
+        ray_rows = np.zeros(0, np.int64) if rays is None else rays.rows[self._ray_inliers]
+        return np.concatenate((rows[self._map_inliers], f_tracks[out.point_inliers],
+                               ray_rows))
 
     def _refine_points(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
                        X: np.ndarray, T_world_cam: np.ndarray) -> tuple[int, np.ndarray]:
@@ -471,5 +522,7 @@ class VisualOdometry(Initialisation):
     _reloc_failed_s = 0.0          #: textured frames' time spent relocalising in vain
     _lost_velocity = (np.zeros(3), np.zeros(3))
  
+    _ray_inliers = np.zeros(0, bool)   #: the last update's verdicts on rays without depth
+    _depth_guess: float | None = None  #: median depth of the map in view (bearing.py)
     last_rotation_check = None     #: the last keyframe pair's rotation_check.RotationCheck
     _inflation = 1.0               #: the health checks' factor on the published covariance

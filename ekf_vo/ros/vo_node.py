@@ -437,6 +437,7 @@ class VoNode(Node):
                 'fps': round(fps, 2), 'latency_p50_ms': round(float(np.percentile(lat, 50)), 2),
                 'latency_p95_ms': round(float(np.percentile(lat, 95)), 2),
                 'tracks': r.n_tracks if r else 0, 'inliers': r.n_inliers if r else 0,
+                'rays': r.n_rays if r else 0,
                 'map_points': r.map_size if r else 0,
                 'resets': self.stream.n_resets}
         vals.update(self.stream.local_map_stats())
