@@ -233,8 +233,10 @@ class VoConfig(_Params):
         'without ba_fixed_keyframes + 1 such keyframes is not adjusted (docs/method.md '
         '§12.2).', 'count', 3, 10000, group='local_map')
     ba_min_parallax_deg: float = param(
-        2.0, 'Only points whose rays from the window\'s keyframes span this angle are '
-        'adjusted.', 'deg', 0.0, 45.0, group='local_map')
+        1.0, 'Only points whose rays from the window\'s keyframes span this angle are '
+        'adjusted (1 deg, the triangulation gate: the young points that made a camera '
+        'circling a scene drift are refined too; docs/method.md §15.8).', 'deg', 0.0, 45.0,
+        group='local_map')
     ba_max_iterations: int = param(
         10, 'Levenberg-Marquardt iterations per adjustment.', 'count', 1, 100,
         group='local_map')
@@ -249,13 +251,12 @@ class VoConfig(_Params):
         'this many frames later (waiting for it if it is not done: results do not depend '
         'on timing).', 'frames', 1, 100, group='local_map')
     ba_pose_prior_weight: float = param(
-        0.0, 'Share of an adjustment\'s information about a keyframe pose (the inverse of '
+        1.0, 'Share of an adjustment\'s information about a keyframe pose (the inverse of '
         'its marginal covariance, from its observations) kept as a prior on that pose in '
-        'the next adjustment (0: none, each window starts afresh from its two fixed '
+        'the next adjustment (0: none, each window starts afresh from its fixed '
         'keyframes; 1: all of it, which counts those observations twice, the price of not '
-        'marginalising). Off by default: better on a car (KITTI 06), but it lost the '
-        'rendered ground robot driving arcs (docs/method.md §12.2, §12.4).', '', 0.0, 1.0,
-        group='local_map')
+        'marginalising). It holds the scale of a window whose gauge keyframes are a short '
+        'baseline apart (docs/method.md §12.2, §15.8).', '', 0.0, 1.0, group='local_map')
     refind_map_points: bool = param(
         False, 'Search map points whose track has ended around their predicted pixel by '
         'ORB descriptor; a match becomes a measurement and a track again '

@@ -226,8 +226,10 @@ class LocalMapper:
     def _wide_enough(self, X: np.ndarray, cam_idx: np.ndarray, pt_idx: np.ndarray
                      ) -> np.ndarray:
         """Points whose rays from their first and last keyframe of the window span
-        ba_min_parallax_deg: a low-parallax point's depth is noise, and refining it from
-        the window alone drifted the scale on KITTI 06 (docs/method.md §12.4)."""
+        ba_min_parallax_deg: below the triangulation gate a point's depth is noise. At
+        2 deg the young points were left as triangulated and a camera circling a scene
+        drifted; at 1 deg the window alone drifted KITTI 06's scale, which the keyframe
+        pose prior holds (docs/method.md §12.4, §15.8)."""
         C = np.stack([kf.T_world_cam[:3, 3] for kf in self.keyframes])
         first = np.full(len(X), len(C))
         last = np.full(len(X), -1)
