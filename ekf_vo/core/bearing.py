@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .observation import pinhole_project
+from .observation import world_point_jacobian
 
 
 @dataclass
@@ -53,8 +53,7 @@ def depth_spread_px2(centres: np.ndarray, bearings: np.ndarray, T_world_cam: np.
     pixel covariance (b,2,2) that rho ~ N(rho0, rho_sigma^2) causes in the camera at
     T_world_cam (linearised at rho0: dX/drho = -m / rho0^2)."""
     X = centres + bearings / rho0
-    R_wc = T_world_cam[:3, :3]
-    _, front, J_pi = pinhole_project((X - T_world_cam[:3, 3]) @ R_wc, K)
-    g = np.einsum('nij,nj->ni', J_pi, (-bearings / rho0 ** 2) @ R_wc)     # (b,2)
+    J_X, front = world_point_jacobian(X, T_world_cam, K)
+    g = np.einsum('nij,nj->ni', J_X, -bearings / rho0 ** 2)             # (b,2)
     cov = rho_sigma ** 2 * g[:, :, None] * g[:, None, :]
     return X, np.where(front[:, None, None], cov, 0.0)

@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import geometry as geo
-from .observation import pinhole_project
+from .observation import world_point_jacobian
 
 #: regulariser of 3x3 point information blocks (one view or none: singular)
 _INFO_REGULARISER = 1e-9
@@ -43,11 +43,9 @@ def pose_point_jacobians(K: np.ndarray, T_world_cam: np.ndarray, X_world: np.nda
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Jacobians of the ideal pixels of points X_world (n,3) seen from T_world_cam:
     (J_pose (n,2,6) w.r.t. (r, theta), J_X (n,2,3), in_front (n,) bool)."""
-    R_cw = T_world_cam[:3, :3].T
     d = np.asarray(X_world, float).reshape(-1, 3) - T_world_cam[:3, 3]
-    _, front, Jp = pinhole_project(d @ R_cw.T, K)
-    J_X = Jp @ R_cw                                                   # dp/dX = R_cw
-    # dp/dr = -R_cw, dp/dtheta = R_cw [d]x (left perturbation of R_world_cam)
+    J_X, front = world_point_jacobian(X_world, T_world_cam, K)        # J_pi R_cw
+    # dp/dr = -J_X, dp/dtheta = J_X [d]x (left perturbation of R_world_cam)
     J_pose = np.concatenate((-J_X, J_X @ geo.skew_batch(d)), axis=2)
     return J_pose, J_X, front
 

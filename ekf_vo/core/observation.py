@@ -165,16 +165,23 @@ class ReprojectionModel:
         return px
 
 
+def world_point_jacobian(X_world: np.ndarray, T_world_cam: np.ndarray,
+                         intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """d ideal pixel / d X^W (n,2,3) of points X_world (n,3) seen from T_world_cam, and
+    the in-front mask (n,)."""
+    R_wc = T_world_cam[:3, :3]
+    X_cam = (np.asarray(X_world, float).reshape(-1, 3) - T_world_cam[:3, 3]) @ R_wc
+    _, front, J_pi = pinhole_project(X_cam, intrinsics)
+    return J_pi @ R_wc.T, front
+
+
 def projected_variance_px2(X_world: np.ndarray, cov_world: np.ndarray,
                            T_world_cam: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     """Pixel variance (n,) that a point's position covariance (n,3,3) adds to its
     reprojection in the camera at T_world_cam: the mean of the two eigen-directions,
     trace(J Sigma J^T) / 2 with J = d pixel / d X^W (docs/method.md §12.3). Points
     behind the camera get 0 (they are not measured)."""
-    R_wc = T_world_cam[:3, :3]
-    X_cam = (np.asarray(X_world, float) - T_world_cam[:3, 3]) @ R_wc
-    _, front, J_pi = pinhole_project(X_cam, intrinsics)
-    J = J_pi @ R_wc.T                                     # d pixel / d X^W  (n,2,3)
+    J, front = world_point_jacobian(X_world, T_world_cam, intrinsics)
     var = np.einsum('nij,njk,nik->n', J, cov_world, J) / 2.0
     return np.where(front, np.maximum(var, 0.0), 0.0)
 
