@@ -173,6 +173,15 @@ def transform_points(T: np.ndarray, X: np.ndarray) -> np.ndarray:
     return X @ T[:3, :3].T + T[:3, 3]
 
 
+def median_depth(X_world: np.ndarray, T_world_cam: np.ndarray) -> float | None:
+    """Median depth along the optical axis of the points X_world (n,3) in front of the
+    camera at T_world_cam; None when none is."""
+    depth = (np.asarray(X_world, float).reshape(-1, 3) - T_world_cam[:3, 3]) @ \
+        T_world_cam[:3, 2]
+    depth = depth[depth > 0]
+    return float(np.median(depth)) if len(depth) else None
+
+
 def rotvecs_to_matrices(w: np.ndarray) -> np.ndarray:
     """Rotation matrices (k,3,3) of rotation vectors (k,3) (vectorised Rodrigues)."""
     theta = np.linalg.norm(w, axis=1)

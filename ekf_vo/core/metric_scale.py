@@ -55,6 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import NodeConfig, VoConfig
+from . import geometry as geo
 from .frame_result import FrameResult
 from .frames import optical_to_body_extrinsic
 from .ground_plane import fit_ground_plane, ground_candidates
@@ -338,10 +339,9 @@ class MetricScale:
             self.filter.predict(REBOOTSTRAP_LOG_SIGMA ** 2)   # scale carried by the speed
         if self._last_p_map is not None:
             # distance in median scene depths: the map unit is arbitrary, depths are not
-            ahead = (np.asarray(X_world, float).reshape(-1, 3) - p_map) @ T[:3, 2]
-            ahead = ahead[ahead > 0]
+            ahead = geo.median_depth(X_world, T)
             step = float(np.linalg.norm(p_map - self._last_p_map))
-            depths = step / float(np.median(ahead)) if len(ahead) else 0.0
+            depths = step / ahead if ahead else 0.0
             self.filter.predict(self.cfg.scale_drift_per_sqrt_depth ** 2 * depths +
                                 self.cfg.scale_drift_per_sqrt_rad ** 2 *
                                 self._turn_rad(T[:3, :3]))

@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from ..config import VoConfig
+from . import geometry as geo
 from .bearing import BearingMeasurements, depth_spread_px2
 from .bootstrap import H_OVER_E_RATIO, TwoViewBootstrap
 from .camera import PinholeCamera
@@ -413,9 +414,7 @@ class VisualOdometry(Initialisation):
         c = self.cfg
         T = self.ekf.T_world_cam
         if len(X) >= 3:
-            depth = (X - T[:3, 3]) @ T[:3, 2]
-            if np.any(depth > 0):
-                self._depth_guess = float(np.median(depth[depth > 0]))
+            self._depth_guess = geo.median_depth(X, T) or self._depth_guess
         if len(X) >= c.bearing_max_map_points or c.estimator == 'epnp' or \
                 self.points is not None or self._depth_guess is None:
             return None
@@ -482,17 +481,14 @@ class VisualOdometry(Initialisation):
         in_map = self.map.contains(tracks.ids)
         in_filter = pts.rows_of(tracks.ids) >= 0
         if pts.free_slots > 0 and len(X):
-            R, r = T_world_cam[:3, :3], T_world_cam[:3, 3]
-            depth = (X - r) @ R[:, 2]
-            depth = depth[depth > 0]
+            depth = geo.median_depth(X, T_world_cam)
             free = ~in_map & ~in_filter
             new = [k for k in np.flatnonzero(free)[::-1]       # newest tracks first
                    if int(tracks.ids[k]) not in self.growth.banned
                    and int(tracks.ids[k]) not in self._filter_rejected]
             new = np.array(new[:pts.free_slots], np.int64)
-            if len(new) and len(depth):
-                pts.add(tracks.ids[new], px[new], T_world_cam, float(np.median(depth)),
-                        self.frame_index)
+            if len(new) and depth is not None:
+                pts.add(tracks.ids[new], px[new], T_world_cam, depth, self.frame_index)
                 in_filter[new] = True
                 for tid in tracks.ids[new]:
                     self.growth.drop(int(tid))
