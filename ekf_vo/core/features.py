@@ -4,10 +4,11 @@ Corners (Shi & Tomasi, "Good features to track", CVPR 1994) are detected per cel
 `grid_rows x grid_cols` grid so that they spread over the whole image (a pose from
 clustered points is badly conditioned), masked so that a new corner keeps
 `min_feature_distance_px` from every live track. They are followed from frame to frame by
-the pyramidal Lucas-Kanade tracker (Bouguet 2001, as in OpenCV), and every track must pass
-a forward-backward check (Kalal, Mikolajczyk & Matas, "Forward-backward error", ICPR 2010):
+the pyramidal Lucas-Kanade tracker (Bouguet 2001, as in OpenCV), and a track must pass a
+forward-backward check (Kalal, Mikolajczyk & Matas, "Forward-backward error", ICPR 2010):
 track the point back from the new frame and drop it if it misses its start by more than
-`klt_fb_max_px`. New corners are detected only when the number of tracks falls below
+`klt_fb_max_px` — unless it landed within that distance of where the filter predicted it,
+which two independent cues then vouch for (docs/method.md §17.2). New corners are detected only when the number of tracks falls below
 `redetect_ratio * max_features` (OpenCV `samples/python/lk_track.py` does the same on a
 fixed interval).
 
@@ -100,6 +101,7 @@ class TrackerStats:
     n_border_rejected: int = 0
     n_predicted: int = 0
     n_prediction_retried: int = 0
+    n_fb_skipped: int = 0        #: landed on the prediction: no backward check needed
     rejected_frame: str = ''
 
 
@@ -297,54 +299,76 @@ class FeatureTracker:
         used[pos_c[ok]] = True
         return init, used
 
-    def _lk_fb(self, gray: np.ndarray, p0: np.ndarray, init: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Forward KLT from `p0` (initial guess `init`) and the backward check.
-
-        Returns p1 (N, 2) float32, ok (N,) bool (both passes converged) and the
-        forward-backward round-trip error (N,) px (inf where a pass failed).
-        """
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(
-            self._prev_gray, gray, p0.reshape(-1, 1, 2), init.reshape(-1, 1, 2).copy(),
-            winSize=self._win, maxLevel=self._levels, criteria=_KLT_CRITERIA, flags=flags)
-        p1 = p1.reshape(-1, 2)
-        # Backward pass from p1 with the same prior offset mirrored: without a prior this
-        # starts at p1 itself (independent of p0, as in lk_track.py).
-        back_init = p1 - (init - p0)
-        p0r, st_b, _ = cv2.calcOpticalFlowPyrLK(
-            gray, self._prev_gray, p1.reshape(-1, 1, 2), back_init.reshape(-1, 1, 2),
-            winSize=self._win, maxLevel=self._levels, criteria=_KLT_CRITERIA, flags=flags)
-        ok = (st.reshape(-1) == 1) & (st_b.reshape(-1) == 1)
-        fb = np.linalg.norm(p0r.reshape(-1, 2) - p0, axis=1)
-        fb[~ok | ~np.isfinite(fb)] = np.inf
-        return p1, ok, fb
+    def _lk(self, img_from: np.ndarray, img_to: np.ndarray, p_from: np.ndarray,
+            start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One pyramidal KLT call: (N, 2) float32 positions in `img_to` found from
+        `p_from` in `img_from`, starting at `start`; and whether each converged."""
+        if p_from.shape[0] == 0:
+            return np.empty((0, 2), np.float32), np.zeros(0, bool)
+        p_to, st, _ = cv2.calcOpticalFlowPyrLK(
+            img_from, img_to, np.ascontiguousarray(p_from, np.float32).reshape(-1, 1, 2),
+            np.array(start, np.float32).reshape(-1, 1, 2), winSize=self._win,  # written to
+            maxLevel=self._levels, criteria=_KLT_CRITERIA,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        p_to = p_to.reshape(-1, 2)
+        return p_to, (st.reshape(-1) == 1) & np.isfinite(p_to).all(axis=1)
 
     def _klt(self, gray: np.ndarray, predicted: object, stats: TrackerStats) -> None:
-        """Move the live tracks into the new frame; drop failures in place."""
+        """Move the live tracks into the new frame; drop failures in place.
+
+        Each call of calcOpticalFlowPyrLK rebuilds both images' pyramids (~1 ms at
+        1226x370; the Python binding takes no prebuilt pyramid), so the calls are few
+        and batched (docs/method.md §17.2):
+
+        1. forward, every track, starting where the filter predicts it (`predicted`);
+        2. backward, every result not vouched for by the prior (below);
+        3. only if a predicted track failed 2: forward again from its old position, and
+        4. backward for those (a bad prior never costs a track that plain KLT keeps).
+
+        A track that lands within `klt_fb_max_px` of its prediction agrees with two
+        independent cues (the image and the filter's motion), so it skips the backward
+        check: on hand-held video that is ~85 % of the tracks with a map point.
+        """
         p0 = self._px
         init, used = self._prior(predicted)
         stats.n_predicted = int(used.sum())
-        p1, ok, fb = self._lk_fb(gray, p0, init)
-        good = ok & (fb <= self._fb_max)
+        p1, ok = self._lk(self._prev_gray, gray, p0, init)
+        agree = used & ok & (np.linalg.norm(p1 - init, axis=1) <= self._fb_max)
+        check = np.flatnonzero(~agree)
+        good = agree.copy()
+        good[check] = ok[check] & self._fb_passes(gray, p0[check], p1[check],
+                                                  init[check])
         retry = used & ~good
+        converged = ok.copy()
         if retry.any():
-            # The prior led KLT astray for these: plain KLT from the old position.
             stats.n_prediction_retried = int(retry.sum())
-            p1r, okr, fbr = self._lk_fb(gray, p0[retry], p0[retry])
-            p1[retry], ok[retry], fb[retry] = p1r, okr, fbr
-            good = ok & (fb <= self._fb_max)
+            p1_plain, ok_plain = self._lk(self._prev_gray, gray, p0[retry], p0[retry])
+            rows = np.flatnonzero(retry)
+            converged[rows] |= ok_plain
+            ok_plain &= self._fb_passes(gray, p0[rows], p1_plain, p0[rows])
+            p1[rows[ok_plain]] = p1_plain[ok_plain]
+            good[rows[ok_plain]] = True
         h, w = gray.shape
         m = _BORDER_MARGIN_PX
         inside = (p1[:, 0] >= m) & (p1[:, 0] <= w - 1 - m) & \
                  (p1[:, 1] >= m) & (p1[:, 1] <= h - 1 - m) & np.isfinite(p1).all(axis=1)
         keep = good & inside
-        stats.n_klt_failed = int((~ok).sum())
-        stats.n_fb_rejected = int((ok & ~good).sum())
+        stats.n_fb_skipped = int(agree.sum())
+        stats.n_klt_failed = int((~converged).sum())
+        stats.n_fb_rejected = int((converged & ~good).sum())
         stats.n_border_rejected = int((good & ~inside).sum())
         self._ids = self._ids[keep]
         self._px = np.ascontiguousarray(p1[keep], np.float32)
         self._age = self._age[keep] + 1
+
+    def _fb_passes(self, gray: np.ndarray, p0: np.ndarray, p1: np.ndarray,
+                   start: np.ndarray) -> np.ndarray:
+        """The backward check of forward results p1 (found from p0, starting at `start`):
+        True where tracking p1 back lands within klt_fb_max_px of p0. As the forward pass
+        started at `start`, the backward one starts at that offset mirrored (without a
+        prior: at p1 itself, independent of p0, as in OpenCV's lk_track.py)."""
+        back, ok = self._lk(gray, self._prev_gray, p1, p1 - (start - p0))
+        return ok & (np.linalg.norm(back - p0, axis=1) <= self._fb_max)
 
     def _detect(self, gray: np.ndarray) -> int:
         """Bucketed Shi-Tomasi detection topping the tracks up to max_features."""

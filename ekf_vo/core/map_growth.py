@@ -45,10 +45,20 @@ class MapGrowth:
             T_world_cam: np.ndarray, anchor: tuple) -> None:
         """A candidate first seen at `frame_index` (whose pose must be remembered), whose
         pose had the published (covariance, centre) `anchor`."""
-        self._frame[tid] = frame_index
-        self._px[tid] = np.asarray(px_ideal, float)
-        self._bearing[tid] = T_world_cam[:3, :3] @ self.camera.unproject(px_ideal)[0]
-        self._anchor[tid] = anchor
+        self.add_many(np.array([tid]), frame_index, np.reshape(px_ideal, (1, 2)),
+                      T_world_cam, anchor)
+
+    def add_many(self, tids: np.ndarray, frame_index: int, px_ideal: np.ndarray,
+                 T_world_cam: np.ndarray, anchor: tuple) -> None:
+        """`add` for the (n,) ids `tids` at (n, 2) ideal pixels, all first seen in one
+        frame: one unprojection for all (a frame on a car brings ~100 new tracks)."""
+        px_ideal = np.array(px_ideal, float).reshape(-1, 2)      # a copy: kept per id
+        bearings = self.camera.unproject(px_ideal) @ T_world_cam[:3, :3].T
+        for tid, px_k, b_k in zip(np.asarray(tids).tolist(), px_ideal, bearings):
+            self._frame[tid] = frame_index
+            self._px[tid] = px_k
+            self._bearing[tid] = b_k
+            self._anchor[tid] = anchor
 
     def drop(self, tid: int) -> None:
         self._frame.pop(tid, None)
@@ -98,15 +108,18 @@ class MapGrowth:
         for tid in [t for t in self._frame if t not in alive]:
             self.drop(tid)
         self.banned &= alive          # ids are never reused: forget ended tracks
-        cand_rows = []
-        for k in np.flatnonzero(~has_point):
+        cand_rows, new_rows = [], []
+        for k in np.flatnonzero(~has_point).tolist():
             tid = int(ids[k])
             if tid in self.banned:
                 continue
-            if tid not in self._frame:
-                self.add(tid, frame_index, px[k], T_world_cam, anchor)
-            elif self._frame[tid] != frame_index:
+            first = self._frame.get(tid)
+            if first is None:
+                new_rows.append(k)
+            elif first != frame_index:
                 cand_rows.append(k)
+        if new_rows:
+            self.add_many(ids[new_rows], frame_index, px[new_rows], T_world_cam, anchor)
         n_added = 0
         if cand_rows:
             n_added = self._triangulate(landmarks, frame_index, ids, px,
