@@ -119,9 +119,12 @@ class LandmarkMap:
     def _rows(self, ids: np.ndarray, missing_ok: bool = False) -> np.ndarray:
         """Rows (n,) of landmarks `ids`; -1 for absent ones if missing_ok, else all must
         be in the map (KeyError)."""
+        ids = np.asarray(ids, np.int64).reshape(-1).tolist()      # Python ints: fast keys
         if missing_ok:
-            return np.array([self._row.get(int(i), -1) for i in ids], dtype=np.int64)
-        return np.array([self._row[int(i)] for i in ids], dtype=np.int64)
+            get = self._row.get
+            return np.array([get(i, -1) for i in ids], dtype=np.int64)
+        row = self._row
+        return np.array([row[i] for i in ids], dtype=np.int64)
 
     def lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For track ids (n,): mask (n,) of those with a landmark, and their X (m,3)."""
@@ -181,7 +184,9 @@ class LandmarkMap:
         return self._ids[rows], self._X[rows], self._desc[rows]
 
     def contains(self, ids: np.ndarray) -> np.ndarray:
-        return np.array([int(i) in self._row for i in ids], dtype=bool)
+        row = self._row
+        return np.array([i in row for i in np.asarray(ids, np.int64).reshape(-1).tolist()],
+                        dtype=bool)
 
     def record_observations(self, ids: np.ndarray, inlier: np.ndarray,
                             frame_index: int) -> np.ndarray:

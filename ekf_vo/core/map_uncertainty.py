@@ -57,10 +57,11 @@ def point_consider_covariance(J_pose: np.ndarray, J_X: np.ndarray, sigma_px: np.
     if len(J_pose) < 3:
         return np.zeros((6, 6))
     w = 1.0 / np.asarray(sigma_px, float) ** 2                        # R_i^-1 = w_i I
-    JT = np.transpose(J_pose, (0, 2, 1))
-    A = np.einsum('n,nij,njk->ik', w, JT, J_pose)
+    w_rows = np.repeat(w, 2)[:, None]                                 # per pixel row
+    J_rows = J_pose.reshape(-1, 6)                                    # (2n, 6)
+    A = J_rows.T @ (w_rows * J_rows)                                  # sum w J^T J
     proj = J_X @ X_cov @ np.transpose(J_X, (0, 2, 1))                 # (n,2,2) px^2
-    B = np.einsum('n,nij,njk,nkl->il', w * w, JT, proj, J_pose)
+    B = J_rows.T @ (w_rows ** 2 * (proj @ J_pose).reshape(-1, 6))     # sum w^2 J^T P J
     try:
         A_inv = np.linalg.inv(A)
     except np.linalg.LinAlgError:

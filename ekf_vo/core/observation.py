@@ -31,28 +31,29 @@ def rotated_by_quat_conj_jacobian(q_wxyz: np.ndarray, v: np.ndarray
                                   ) -> tuple[np.ndarray, np.ndarray]:
     """R(q)^T v and its derivative w.r.t. q, for (N,3) vectors v.
 
-    R(q)^T v = R(q*) v = (w^2 - u.u) v + 2 (u.v) u - 2 w (u x v) with q = (w, u):
-    the quadratic form of [0, X] = q* [0, v] q, differentiated term by term.
+    R(q)^T v = R(q*) v = (w^2 - u.u) v + 2 (u.v) u - 2 w (u x v) with q = (w, u), the
+    quadratic form of [0, X] = q* [0, v] q. It is linear in v, and so is each of its
+    four partial derivatives w.r.t. q:
+
+        d/dw   = 2 w I - 2 [u]x
+        d/du_k = -2 u_k I + 2 u e_k^T + 2 e_k u^T - 2 w [e_k]x
+
+    so the rotated vectors and all Jacobians are one (N,3) x (3,15) product.
     Returns (N,3) rotated vectors and (N,3,4) Jacobians.
     """
-    w, u = q_wxyz[0], q_wxyz[1:]
-    uv = v @ u                                    # (N,)
-    uxv = np.cross(u, v)                          # (N,3) = u x v
-    out = (w * w - u @ u) * v + 2.0 * uv[:, None] * u - 2.0 * w * uxv
-    J = np.empty((len(v), 3, 4))
-    J[:, :, 0] = 2.0 * w * v - 2.0 * uxv
-    # d/du: -2 v u^T + 2 (u.v) I + 2 u v^T + 2 w [v]_x
-    J[:, :, 1:] = (-2.0 * v[:, :, None] * u[None, None, :]
-                   + 2.0 * uv[:, None, None] * np.eye(3)[None]
-                   + 2.0 * u[None, :, None] * v[:, None, :])
-    vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
-    J[:, 0, 2] += 2.0 * w * -vz
-    J[:, 0, 3] += 2.0 * w * vy
-    J[:, 1, 1] += 2.0 * w * vz
-    J[:, 1, 3] += 2.0 * w * -vx
-    J[:, 2, 1] += 2.0 * w * -vy
-    J[:, 2, 2] += 2.0 * w * vx
-    return out, J
+    w, x, y, z = (float(c) for c in q_wxyz)
+    mats = np.array((
+        ((w*w + x*x - y*y - z*z, 2*(x*y + w*z), 2*(x*z - w*y)),          # R(q)^T
+         (2*(x*y - w*z), w*w - x*x + y*y - z*z, 2*(y*z + w*x)),
+         (2*(x*z + w*y), 2*(y*z - w*x), w*w - x*x - y*y + z*z)),
+        ((2*w, 2*z, -2*y), (-2*z, 2*w, 2*x), (2*y, -2*x, 2*w)),         # d/dw
+        ((2*x, 2*y, 2*z), (2*y, -2*x, 2*w), (2*z, -2*w, -2*x)),         # d/dx
+        ((-2*y, 2*x, -2*w), (2*x, 2*y, 2*z), (2*w, 2*z, -2*y)),         # d/dy
+        ((-2*z, 2*w, 2*x), (-2*w, -2*z, 2*y), (2*x, 2*y, 2*z))))        # d/dz
+    # (N,3) @ (3, 5*3): column block j is mats[j] v
+    prod = np.asarray(v, float) @ mats.transpose(2, 0, 1).reshape(3, 15)
+    prod = prod.reshape(-1, 5, 3)
+    return prod[:, 0], prod[:, 1:].transpose(0, 2, 1)
 
 
 def pinhole_project(X_cam: np.ndarray, intrinsics: np.ndarray, with_jacobian: bool = True,

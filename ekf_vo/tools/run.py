@@ -52,7 +52,7 @@ import sys
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -243,10 +243,9 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
     of `summary`. `known_poses`: (gt stamps ns, gt poses, tolerance ns) for the
     ground-truth bootstrap, or None. Returns the stream and the (stamp s, T_world_cam)
     of ok frames."""
-    from ..bridge import ConversionError, stamp_to_ns
-    from ..bridge.image import decode_image
+    from ..bridge import ConversionError
     from ..core.stream import Rejection
-    from ..io.bag import iter_bag
+    from ..io.prefetch import prefetched
 
     stream = VoStream(cfg, seed=seed, T_base_cam=T_base_cam)
     stamps_s: list[float] = []
@@ -287,7 +286,8 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
 
     t0 = time.perf_counter()
     topics = [summary.image_topic, summary.info_topic] + ([odom_topic] if odom_topic else [])
-    for topic, msgtype, log_ns, msg in iter_bag(bag, topics):
+    for topic, msgtype, log_ns, msg, decoded in prefetched(
+            _read_bag(bag, topics, summary.image_topic)):
         if topic == odom_topic:
             _add_scale_odometry(stream, topic, log_ns, msg)
             continue
@@ -302,13 +302,11 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
             break
         if bar is not None:
             bar.update(1)
-        try:
-            gray = decode_image(msgtype, msg, gray=True)
-            stamp_ns = stamp_to_ns(msg.header.stamp)
-        except ConversionError as exc:
-            logger.warning('skipping image at %d ns: %s', log_ns, exc)
+        if isinstance(decoded, ConversionError):
+            logger.warning('skipping image at %d ns: %s', log_ns, decoded)
             summary.frames_skipped += 1
             continue
+        gray, stamp_ns = decoded
         rejected = stream.admit(stamp_ns)
         if rejected is not None:
             logger.warning('skipping image at %d ns: %s', log_ns, rejected.text)
@@ -325,6 +323,25 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
     summary.local_map = stream.local_map_stats()
     summary.scale = stream.scale_status().as_status()
     return stream, stamps_s, poses
+
+
+def _read_bag(bag: Path, topics: list[str], image_topic: str) -> Iterator[tuple]:
+    """The bag's messages on `topics` in log order as (topic, msgtype, log ns, msg,
+    decoded): for an image, decoded is (grey image, header stamp ns) or the
+    ConversionError that says why not (decode_image, as in vo_node); else None. Runs in
+    the prefetch thread (io/prefetch.py)."""
+    from ..bridge import ConversionError, stamp_to_ns
+    from ..bridge.image import decode_image
+    from ..io.bag import iter_bag
+    for topic, msgtype, log_ns, msg in iter_bag(bag, topics):
+        decoded = None
+        if topic == image_topic:
+            try:
+                decoded = (decode_image(msgtype, msg, gray=True),
+                           stamp_to_ns(msg.header.stamp))
+            except ConversionError as exc:
+                decoded = exc
+        yield topic, msgtype, log_ns, msg, decoded
 
 
 def _add_camera_info(stream: VoStream, msg: Any) -> str:
