@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -187,13 +188,21 @@ class VisualOdometry(Initialisation):
 
     # ------------------------------------------------------------------ main entry
     def process(self, gray: np.ndarray, stamp_ns: int,
-                known_T_world_cam: np.ndarray | None = None) -> FrameResult:
+                known_T_world_cam: np.ndarray | None = None,
+                on_pose: Callable[[FrameResult], None] | None = None) -> FrameResult:
         """Process one grey image (uint8 HxW, the camera's size) taken at `stamp_ns`
         (int nanoseconds, increasing): stream.VoStream checks both before calling.
 
         `known_T_world_cam` is only for the papers' ground-truth bootstrap (docs/method.md §2.3:
         "the first two ground-truth poses fix the scale"); the pipeline never reads it
-        once tracking."""
+        once tracking.
+
+        `on_pose`: called with the frame's result as soon as its pose, covariance, twist,
+        ok and health are final — in a tracked frame before the map work (growth,
+        keyframe, rotation check), which then fills in the rest of the same object
+        (docs/method.md §17.3). A node publishes odometry from it; frames that do not
+        track (bootstrap, relocalisation, lost) do not call it."""
+        self._on_pose = on_pose
         t0 = time.perf_counter()
         stamp_ns = int(stamp_ns)
         if self._last_stamp_ns is not None and self.state == TrackingState.TRACKING and \
@@ -272,6 +281,11 @@ class VisualOdometry(Initialisation):
             ray_anchors=None if rays is None else (rays.anchor_cov[self._ray_inliers],
                                                    rays.anchor_c[self._ray_inliers]))
 
+        res.ok = self._failed_frames == 0
+        self._fill_pose(res)
+        if self._on_pose is not None:
+            self._on_pose(res)          # the pose is final: publish before the map work
+
         # ---- map growth, keyframes
         t = time.perf_counter()
         inlier_mask = np.zeros(len(tracks), bool)
@@ -279,8 +293,7 @@ class VisualOdometry(Initialisation):
         res.n_new_points += self._after_update(gray, tracks, px, rows, X, has_point,
                                                inlier_mask)
         timings['map'] = (time.perf_counter() - t) * 1e3
-        res.ok = self._failed_frames == 0
-        self._fill_output(res, tracks, has_point, inlier_mask)
+        self._fill_tracks(res, tracks, has_point, inlier_mask)
         if self.finder is not None and c.refind_map_points:
             t = time.perf_counter()
             found = self.finder.find_again(gray, tracks, self.map, self.ekf, self.camera,
@@ -497,9 +510,17 @@ class VisualOdometry(Initialisation):
     # ------------------------------------------------------------------ output
     def _fill_output(self, res: FrameResult, tracks: Tracks, has_point: np.ndarray,
                      inlier_mask: np.ndarray) -> None:
+        self._fill_pose(res)
+        self._fill_tracks(res, tracks, has_point, inlier_mask)
+
+    def _fill_tracks(self, res: FrameResult, tracks: Tracks, has_point: np.ndarray,
+                     inlier_mask: np.ndarray) -> None:
         self._prev_ids = tracks.ids.copy()
         res.track_ids, res.track_px = tracks.ids, tracks.px
         res.track_has_point, res.track_inlier = has_point, inlier_mask
+
+    def _fill_pose(self, res: FrameResult) -> None:
+        """The published pose, covariance and twist (and ok) of the filter's state."""
         res.T_world_cam = self.ekf.T_world_cam
         cov = self._published_cov
         twist, twist_cov = self.ekf.twist_cam()
@@ -514,6 +535,7 @@ class VisualOdometry(Initialisation):
             res.message = 'non-finite estimate suppressed'
 
     _prev_ids = np.zeros(0, np.int64)
+    _on_pose: Callable[[FrameResult], None] | None = None
     _published_cov = np.zeros((6, 6))
     _reloc_failed_s = 0.0          #: textured frames' time spent relocalising in vain
     _lost_velocity = (np.zeros(3), np.zeros(3))

@@ -23,7 +23,7 @@ import collections
 import logging
 import threading
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -169,11 +169,16 @@ class VoStream:
             self._pending_reset = reason
 
     def process(self, gray: np.ndarray, stamp_ns: int,
-                known_T_world_cam: np.ndarray | None = None
+                known_T_world_cam: np.ndarray | None = None,
+                on_pose: Callable[[FrameResult], None] | None = None
                 ) -> FrameResult | Rejection:
         """Run one admitted frame (grey uint8 HxW) through the estimator.
 
         `known_T_world_cam`: only for the papers' ground-truth bootstrap (benchmarks).
+        `on_pose`: called with the result (in the published frame: metres with a scale
+        source) as soon as a tracked frame's pose and covariance are final, before the
+        estimator's map work (pipeline.VisualOdometry.process); a node publishes its
+        odometry from there. The result returned is the same object, completed.
         Only one thread may call this (a node's worker); the others may call the rest."""
         stamp_ns = int(stamp_ns)
         with self._lock:
@@ -205,11 +210,25 @@ class VoStream:
             self._last_processed_ns = stamp_ns
         # the estimator runs outside the lock: calibration, stamps and reset requests keep
         # coming in; a calibration change replaces the estimator for the next frame
-        result = vo.process(gray, stamp_ns, known_T_world_cam)
+        scaled: list[FrameResult] = []
+
+        def pose_ready(res: FrameResult) -> None:
+            # the scale sees the map the pose was estimated from, in every run (a node's
+            # or an offline one): the same figures whether on_pose is given or not
+            self._apply_scale(vo, res)
+            scaled.append(res)
+            if on_pose is not None:
+                on_pose(res)
+
+        result = vo.process(gray, stamp_ns, known_T_world_cam, on_pose=pose_ready)
+        if not scaled:                     # a frame that did not track
+            self._apply_scale(vo, result)
+        return result
+
+    def _apply_scale(self, vo: VisualOdometry, result: FrameResult) -> None:
         with self._lock:
             if vo is self.vo:
                 self.scale.apply(result, vo.map.X_world, vo.map.n_obs)
-        return result
 
     def add_scale_odometry(self, stamp_ns: int, xyz: np.ndarray) -> Rejection | None:
         """An external odometry's position (metres, its own frame) at `stamp_ns`, for

@@ -279,7 +279,17 @@ class VoNode(Node):
         # parameters) are never held up by a frame
         n_requested = self.stream.n_requested_resets
         n_changes = self.stream.n_camera_changes
-        result = self.stream.process(gray, stamp_ns)
+        published: list[bool] = []
+
+        def publish_pose(res) -> None:
+            # a tracked frame's odometry goes out before the estimator's map work
+            # (docs/method.md §17.3): that work is latency nobody downstream waits for
+            if res.ok:
+                self._publish_odometry(res)
+                self._latencies_ms.append((time.perf_counter() - received) * 1e3)
+                published.append(True)
+
+        result = self.stream.process(gray, stamp_ns, on_pose=publish_pose)
         if self.stream.n_camera_changes != n_changes:
             with self._lock:
                 self._map_restarted = True
@@ -298,8 +308,9 @@ class VoNode(Node):
         self.counters['processed'] += 1
         self._frame_times.append(time.perf_counter())
         if result.ok:
-            self._publish_odometry(result)
-            self._latencies_ms.append((time.perf_counter() - received) * 1e3)
+            if not published:              # bootstrap and relocalised frames
+                self._publish_odometry(result)
+                self._latencies_ms.append((time.perf_counter() - received) * 1e3)
             self.counters['published'] += 1
         elif result.message:
             self.get_logger().info(f'[{result.state.value}] {result.message}',
