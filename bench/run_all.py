@@ -148,11 +148,12 @@ def _rows_throughput(tp: dict) -> list[list[str]]:
     rows.append(['core frames/s 640x480 / 1226x370', f'{_f(d["fps"], 0)} / '
                  f'{_f(k.get("fps"), 0)}', '~10 fps (Li et al., i7, 2160 frames)',
                  'faster' if min(d['fps'], k.get('fps', d['fps'])) > 10 else 'not faster'])
-    lat = tp.get('latency', {})
-    if 'e2e_p50_ms' in lat:
-        rows.append(['vo_node latency p50 / p95 [ms], 30 Hz 640x480',
-                     f'{_f(lat["e2e_p50_ms"], 1)} / {_f(lat["e2e_p95_ms"], 1)}', '-',
-                     f'{lat["odometry_received"]}/{lat["frames_sent"]} frames answered'])
+    for key, what in (('latency', '30 Hz 640x480'), ('latency_kitti', '10 Hz 1226x370')):
+        lat = tp.get(key, {})
+        if 'e2e_p50_ms' in lat:
+            rows.append([f'vo_node latency p50 / p95 [ms], {what}, map_node beside',
+                         f'{_f(lat["e2e_p50_ms"], 1)} / {_f(lat["e2e_p95_ms"], 1)}', '-',
+                         f'{lat["odometry_received"]}/{lat["frames_sent"]} frames answered'])
     return rows
 
 
@@ -646,20 +647,24 @@ def section_speed(tp: dict, quick: bool) -> str:
         rows.append([label, _f(r['fps'], 1), _f(st.get('total'), 1),
                      _f(r['stage_ms_p95'].get('total'), 1), _f(st.get('predict')),
                      _f(st.get('track')), _f(st.get('update')), _f(st.get('map'))])
-    lat = tp.get('latency', {})
-    if 'e2e_p50_ms' in lat:
-        lat_txt = _table(['frames sent / odometry received', 'publish->odometry p50 / p95 / max '
-                          '[ms]', 'inside vo_node p50 / p95 [ms]', 'dropped (behind)',
-                          'node fps'],
-                         [[f'{lat["frames_sent"]} / {lat["odometry_received"]}',
-                           f'{_f(lat["e2e_p50_ms"], 1)} / {_f(lat["e2e_p95_ms"], 1)} / '
-                           f'{_f(lat["e2e_max_ms"], 1)}',
-                           f'{_f(lat["node_p50_ms"], 1)} / {_f(lat["node_p95_ms"], 1)}',
-                           lat['dropped_behind'], _f(lat['node_fps'], 1)]])
-        lat_txt += ('\n\nOdometry messages can be fewer than frames sent: the first frames '
-                    'are spent on the bootstrap (no pose yet).')
-    else:
-        lat_txt = f'Latency not measured: {lat.get("skipped", "?")}'
+    lat_rows = []
+    for key, what in (('latency', 'demo 640x480, 30 Hz'), ('latency_kitti',
+                                                           'KITTI 06 1226x370, 10 Hz')):
+        lat = tp.get(key, {})
+        if 'e2e_p50_ms' not in lat:
+            lat_rows.append([what, f'not measured: {lat.get("skipped", "?")}'] + ['-'] * 4)
+            continue
+        lat_rows.append([what, f'{lat["frames_sent"]} / {lat["odometry_received"]}',
+                         f'{_f(lat["e2e_p50_ms"], 1)} / {_f(lat["e2e_p95_ms"], 1)} / '
+                         f'{_f(lat["e2e_max_ms"], 1)}',
+                         f'{_f(lat["node_p50_ms"], 1)} / {_f(lat["node_p95_ms"], 1)}',
+                         lat['dropped_behind'], _f(lat['node_fps'], 1)])
+    lat_txt = _table(['input', 'frames sent / odometry received',
+                      'publish->odometry p50 / p95 / max [ms]',
+                      'inside vo_node p50 / p95 [ms]', 'dropped (behind)', 'node fps'],
+                     lat_rows)
+    lat_txt += ('\n\nOdometry messages can be fewer than frames sent: the first frames '
+                'are spent on the bootstrap (no pose yet).')
     return ''.join([f"""## 5. Speed ({tp['machine']})
 
 Core only (images decoded beforehand), {passes}, mean ms per frame by
@@ -671,7 +676,8 @@ standalone runs of the same measurement can be ~2x faster on the demo bag.
 
 """, _table(['sequence', 'frames/s', 'mean ms', 'p95 ms', 'predict', 'track', 'update', 'map'],
             rows), '\n\n![speed](speed.png)\n\n',
-        f'**ROS latency** (vo_node in its own process, mono8 frames at 30 Hz over DDS):\n\n',
+        '**ROS latency** (vo_node and a map_node, each in its own process, mono8 frames '
+        'over DDS):\n\n',
         lat_txt, '\n'])
 
 

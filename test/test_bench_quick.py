@@ -91,6 +91,14 @@ def test_update_cost_linear_for_camera_only_superlinear_for_slam(quick_run):
 def test_speed_and_memory(quick_run):
     _, _, res = quick_run
     assert res['throughput']['demo_640x480']['fps'] > 5.0
+    for key in ('latency', 'latency_kitti'):
+        lat = res['throughput'][key]
+        if 'skipped' in lat:
+            continue
+        # every frame after the first pose answered, with a map_node beside receiving
+        assert lat['no_odometry_after_first'] == 0, lat
+        assert lat['dropped_behind'] == 0, lat
+        assert lat['map_clouds_nonempty'] > 0, lat
     m = res['memory']
     assert m['rss_flat'], m['rss_growth_second_half_mb_per_1000_frames']
     assert m['map_size_max'] <= m['map_bound']

@@ -45,7 +45,7 @@ from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
 from .refind import MapPointFinder
 from .relocalise import Relocaliser
-from .rotation_check import check_rotation
+from .rotation_check import DeferredCheck
 from .point_filter import PointFilter
 
 logger = logging.getLogger(__name__)
@@ -78,6 +78,7 @@ class VisualOdometry(Initialisation):
             else None
         self.growth = MapGrowth(cfg, camera)        # triangulation candidates (§7.3)
         self.health = HealthMonitor(cfg)            # online consistency checks (§15)
+        self._rotation_job = DeferredCheck()        # keyframes' rotation check (§15.2)
         # in-filter map refinement (docs/method.md §8); None = the hybrid default
         self.points: PointFilter | None = None
         if cfg.map_refinement == 'filter' and cfg.estimator != 'epnp':
@@ -107,8 +108,16 @@ class VisualOdometry(Initialisation):
         if self.multiview is not None:
             self.multiview.reset()
 
+    def close(self) -> None:
+        """Stop the worker threads (adjustment, rotation check); a running job finishes
+        and its result is dropped. The estimator is not used after this."""
+        if self.local_map is not None:
+            self.local_map.close(wait=False)
+        self._rotation_job.close()
+
     def reset(self, reason: str = 'requested') -> None:
         """Drop the map and re-bootstrap; keep the world frame at the last good pose."""
+        self._take_check()
         if self.state == TrackingState.TRACKING:
             self._keep_anchor()
         logger.info('VO reset: %s', reason)
@@ -125,6 +134,7 @@ class VisualOdometry(Initialisation):
     def _lose(self, reason: str) -> None:
         """Tracking lost: keep the map and look for the camera in it (relocalise.py) for
         relocalise_timeout_s; without a relocaliser or a described map, re-bootstrap."""
+        self._take_check()
         if self.relocaliser is None or self.state != TrackingState.TRACKING or \
                 not len(self.map.described()[0]):
             self.reset(reason)
@@ -271,6 +281,7 @@ class VisualOdometry(Initialisation):
         # ---- tracking quality, and the published covariance (docs/method.md §14-15)
         n_found = np.count_nonzero(self._map_inliers) / max(len(rows), 1) * \
             np.count_nonzero(has_point)
+        self._take_check()
         if self._judge(res, n_found, n_in_view):
             return res
         mi = self._map_inliers
@@ -348,10 +359,19 @@ class VisualOdometry(Initialisation):
         if not c.rotation_check or len(kfs) < 2:
             return
         a, b = kfs[-2], kfs[-1]
-        check = check_rotation(self.camera.K, a.ids, a.px, a.T_world_cam_filter, b.ids,
-                               b.px, b.T_world_cam_filter, c.bootstrap_ransac_px,
-                               c.rotation_check_min_parallax_deg, H_OVER_E_RATIO,
-                               self.ekf.pose_covariance()[3:, 3:], seed=self.frame_index)
+        # in a worker thread; its verdict is taken before the next frame's (_take_check)
+        self._rotation_job.submit(
+            self.camera.K, a.ids, a.px, a.T_world_cam_filter, b.ids, b.px,
+            b.T_world_cam_filter, c.bootstrap_ransac_px, c.rotation_check_min_parallax_deg,
+            H_OVER_E_RATIO, self.ekf.pose_covariance()[3:, 3:], seed=self.frame_index)
+
+    def _take_check(self) -> None:
+        """The last keyframe's rotation check (_check_rotation), before anything it
+        informs: the next frame's verdict and published covariance, a reset, a loss."""
+        if not self._rotation_job.pending:
+            return
+        c = self.cfg
+        check = self._rotation_job.take()
         self.last_rotation_check = check
         if check is not None and check.nees > c.rotation_check_max_nees:
             self.world_cov.add_rotation_evidence(check.discrepancy_world)

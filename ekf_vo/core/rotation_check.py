@@ -21,7 +21,9 @@ the bootstrap's (bootstrap.py, after ORB-SLAM's): the homography's share of the 
 """
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -110,3 +112,37 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
         return None
     return RotationCheck(T_world_a[:3, :3] @ d_a, nees,
                          float(np.degrees(np.linalg.norm(d_a))), sigma, n, parallax)
+
+
+class DeferredCheck:
+    """`check_rotation` in a worker thread of its own: submitted at a keyframe, taken
+    before the next frame's verdict (pipeline.py), which is when its evidence was first
+    used anyway, so the figures are those of running it in line. OpenCV releases the GIL
+    in the essential matrix / homography estimation, so the check overlaps the next
+    frame's tracking (docs/method.md §17.3)."""
+
+    def __init__(self) -> None:
+        self._pool: ThreadPoolExecutor | None = None
+        self._pending: Future | None = None
+
+    def submit(self, *args: Any, **kwargs: Any) -> None:
+        """Run check_rotation(*args, **kwargs); an earlier one not taken is dropped."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix='ekf_vo_rot')
+        self._pending = self._pool.submit(check_rotation, *args, **kwargs)
+
+    @property
+    def pending(self) -> bool:
+        return self._pending is not None
+
+    def take(self) -> RotationCheck | None:
+        """The submitted check's verdict (waiting for it; what it raised is raised
+        here); None without one."""
+        future, self._pending = self._pending, None
+        return None if future is None else future.result()
+
+    def close(self) -> None:
+        self._pending = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=False)
+            self._pool = None

@@ -279,8 +279,7 @@ class VoStream:
     def _replace_estimator(self, vo: VisualOdometry) -> None:
         if self.vo is not None:
             self._resets_before += self.vo.n_resets
-            if self.vo.local_map is not None:
-                self.vo.local_map.close(wait=False)
+            self.vo.close()
         self.vo = vo
         self.scale.reset()                      # a new world: its scale is unknown
         self._pending_reset = None
