@@ -74,6 +74,20 @@ def quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
+def quat_to_matrix_batch(q_wxyz: np.ndarray) -> np.ndarray:
+    """`quat_to_matrix` of (n,4) quaternions at once: (n,3,3)."""
+    q = np.asarray(q_wxyz, dtype=float).reshape(-1, 4)
+    n = np.linalg.norm(q, axis=1)
+    if not np.all(np.isfinite(n) & (n >= 1e-12)):
+        raise ValueError('cannot normalise a quaternion of the batch')
+    w, x, y, z = (q / n[:, None]).T
+    return np.stack((
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+        axis=1).reshape(-1, 3, 3)
+
+
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """Quaternion (wxyz, w >= 0) of a rotation matrix (Shepperd's method, robust)."""
     R = np.asarray(R, dtype=float)

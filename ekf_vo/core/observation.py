@@ -151,7 +151,7 @@ class ReprojectionModel:
         rho = np.ones((h, len(self.col)))
         f = self.col >= 0
         rho[:, f] = states[:, self.col[f]]
-        R_wc = np.stack([geo.quat_to_matrix(q) for q in states[:, QUAT]])   # (h,3,3)
+        R_wc = geo.quat_to_matrix_batch(states[:, QUAT])                   # (h,3,3)
         v = rho[:, :, None] * (self.anchor[None] - states[:, None, POS]) + self.ray[None]
         X_cam = np.einsum('hji,hnj->hni', R_wc, v)
         Z = X_cam[..., 2]
