@@ -65,13 +65,17 @@ def quat_conjugate(q_wxyz: np.ndarray) -> np.ndarray:
     return np.array([q_wxyz[0], -q_wxyz[1], -q_wxyz[2], -q_wxyz[3]])
 
 
+def _unit_quat_matrix_entries(w, x, y, z) -> tuple:
+    """The 9 entries (row-major) of the rotation matrix of the unit quaternion (w, x, y,
+    z); scalars or arrays alike (quat_to_matrix, quat_to_matrix_batch)."""
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+
+
 def quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
     """3x3 rotation matrix of a (not necessarily unit) quaternion, normalised first."""
-    w, x, y, z = quat_normalize(q_wxyz)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(_unit_quat_matrix_entries(*quat_normalize(q_wxyz))).reshape(3, 3)
 
 
 def quat_to_matrix_batch(q_wxyz: np.ndarray) -> np.ndarray:
@@ -80,12 +84,7 @@ def quat_to_matrix_batch(q_wxyz: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(q, axis=1)
     if not np.all(np.isfinite(n) & (n >= 1e-12)):
         raise ValueError('cannot normalise a quaternion of the batch')
-    w, x, y, z = (q / n[:, None]).T
-    return np.stack((
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
-        axis=1).reshape(-1, 3, 3)
+    return np.stack(_unit_quat_matrix_entries(*(q / n[:, None]).T), axis=1).reshape(-1, 3, 3)
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:

@@ -212,7 +212,6 @@ class VisualOdometry(Initialisation):
         keyframe, rotation check), which then fills in the rest of the same object
         (docs/method.md §17.3). A node publishes odometry from it; frames that do not
         track (bootstrap, relocalisation, lost) do not call it."""
-        self._on_pose = on_pose
         t0 = time.perf_counter()
         stamp_ns = int(stamp_ns)
         if self._last_stamp_ns is not None and self.state == TrackingState.TRACKING and \
@@ -220,7 +219,7 @@ class VisualOdometry(Initialisation):
             self._lose(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s')
         self.frame_index += 1
         if self.state == TrackingState.TRACKING:
-            result = self._track(gray, stamp_ns)
+            result = self._track(gray, stamp_ns, on_pose)
         elif self.state == TrackingState.LOST:
             result = self._relocalise(gray, stamp_ns)
         elif self.multiview is not None:
@@ -233,7 +232,8 @@ class VisualOdometry(Initialisation):
         return result
 
     # ------------------------------------------------------------------ tracking
-    def _track(self, gray: np.ndarray, stamp_ns: int) -> FrameResult:
+    def _track(self, gray: np.ndarray, stamp_ns: int,
+               on_pose: Callable[[FrameResult], None] | None = None) -> FrameResult:
         c = self.cfg
         timings = {}
         dt = (stamp_ns - self._last_stamp_ns) * 1e-9
@@ -294,8 +294,8 @@ class VisualOdometry(Initialisation):
 
         res.ok = self._failed_frames == 0
         self._fill_pose(res)
-        if self._on_pose is not None:
-            self._on_pose(res)          # the pose is final: publish before the map work
+        if on_pose is not None:
+            on_pose(res)                # the pose is final: publish before the map work
 
         # ---- map growth, keyframes
         t = time.perf_counter()
@@ -555,7 +555,6 @@ class VisualOdometry(Initialisation):
             res.message = 'non-finite estimate suppressed'
 
     _prev_ids = np.zeros(0, np.int64)
-    _on_pose: Callable[[FrameResult], None] | None = None
     _published_cov = np.zeros((6, 6))
     _reloc_failed_s = 0.0          #: textured frames' time spent relocalising in vain
     _lost_velocity = (np.zeros(3), np.zeros(3))

@@ -282,13 +282,13 @@ class VoNode(Node):
         published: list[bool] = []
 
         def publish_pose(res) -> None:
-            # a tracked frame's odometry goes out before the estimator's map work
-            # (docs/method.md §17.3): that work is latency nobody downstream waits for
-            if res.ok:
+            if res.ok and not published:
                 self._publish_odometry(res)
                 self._latencies_ms.append((time.perf_counter() - received) * 1e3)
                 published.append(True)
 
+        # a tracked frame's odometry goes out before the estimator's map work
+        # (docs/method.md §17.3): that work is latency nobody downstream waits for
         result = self.stream.process(gray, stamp_ns, on_pose=publish_pose)
         if self.stream.n_camera_changes != n_changes:
             with self._lock:
@@ -308,9 +308,7 @@ class VoNode(Node):
         self.counters['processed'] += 1
         self._frame_times.append(time.perf_counter())
         if result.ok:
-            if not published:              # bootstrap and relocalised frames
-                self._publish_odometry(result)
-                self._latencies_ms.append((time.perf_counter() - received) * 1e3)
+            publish_pose(result)           # bootstrap and relocalised frames: now
             self.counters['published'] += 1
         elif result.message:
             self.get_logger().info(f'[{result.state.value}] {result.message}',
