@@ -102,6 +102,21 @@ class VoConfig(_Params):
     bootstrap_baseline_m: float = param(
         1.0, 'Distance assigned to the bootstrap baseline (sets the map scale).', 'm',
         1e-6, 1e6, group='bootstrap')
+    orientation_before_map: bool = param(
+        True, 'Before the two-view bootstrap has a map (a camera turning in place, a robot '
+        'standing), publish the orientation from the tracks alone, with the position '
+        'unknown (unknown_position_sigma) and ~/status DEGRADED (docs/method.md §15.9).',
+        group='bootstrap')
+    orientation_only_after_s: float = param(
+        0.5, 'Publish orientation-only poses once the bootstrap has waited this long (a '
+        'camera that moves bootstraps sooner, and its position is then known).', 's', 0.0,
+        3600.0, group='bootstrap')
+    orientation_only_max_px: float = param(
+        3.0, 'A track agrees with a rotation-only fit within this distance.', 'px', 0.1,
+        50.0, group='bootstrap')
+    unknown_position_sigma: float = param(
+        1000.0, 'Std published for a position (and linear velocity, per second) that '
+        'nothing measures: orientation-only poses.', 'm', 1.0, 1e9, group='bootstrap')
     bootstrap: str = param(
         'two_view', 'Map bootstrap: two_view (essential matrix, docs/method.md §2.1) or '
         'multi_view (two-view start, PnP + triangulation over the first '

@@ -36,6 +36,8 @@ class FrameResult:
     n_rays: int = 0                         #: of the inliers, rays without depth (bearing.py)
     nis_per_dof: float = 0.0               #: normalised innovation squared / (2 n)
     map_size: int = 0
+    #: before the map: a pose whose orientation alone is measured (orientation_only.py)
+    orientation_only: bool = False
     bootstrapped: bool = False              #: this frame completed a (re-)bootstrap
     #: with bootstrapped: the index (images processed, from 0) of the bootstrap's first
     #: frame, the pose the map's gauge was fixed at (docs/method.md §12.7)

@@ -17,6 +17,12 @@ from . import geometry as geo
 from .features import Tracks
 from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
 
+#: rotation std given to a map attached after the orientation chain broke (frames without
+#: a rotation fit before the bootstrap): the orientation is then only the last one known
+_BROKEN_CHAIN_SIGMA_RAD = 0.5
+#: chi-square 3 dof, 99 %: a bootstrap rotation the orientation chain contradicts
+_CHI2_3DOF_99 = 11.34
+
 
 @dataclass
 class _Reference:
@@ -48,6 +54,8 @@ class Initialisation:
                     known_T: np.ndarray | None) -> FrameResult:
         tracks, px, res = self._track_initialising(gray, stamp_ns)
         timings = res.timings_ms
+        chain = self.orientation if known_T is None else None
+        est = None if chain is None else chain.track(stamp_ns, tracks.ids, px)
         ref = self._ref
         too_old = ref is not None and self.frame_index - ref.frame_index > \
             self.cfg.bootstrap_max_frames
@@ -56,9 +64,12 @@ class Initialisation:
             if len(tracks) >= self.cfg.bootstrap_min_inliers:
                 self._ref = _Reference(stamp_ns, self.frame_index, tracks.ids.copy(),
                                        px.copy(), known_T)
+                if chain is not None:
+                    chain.new_reference(est)
                 res.message = 'bootstrap: new reference frame'
             else:
                 res.message = f'bootstrap: only {len(tracks)} features'
+            self._orientation_only(res, est)
             return res
 
         t = time.perf_counter()
@@ -76,20 +87,97 @@ class Initialisation:
             boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
                                               baseline=baseline)
             if boot.ok:
-                T_world_ref = self._anchor_T_world_cam
+                T_world_ref = self._attach_pose(boot.X_ref)
                 T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
                 X_world = geo.transform_points(T_world_ref, boot.X_ref)
         timings['bootstrap'] = (time.perf_counter() - t) * 1e3
         if not boot.ok:
             res.message = f'bootstrap refused: {boot.reason}'
+            if chain is not None:
+                chain.set_model_sigma(boot.median_parallax_deg, boot.median_flow_px)
+            self._orientation_only(res, est)
             return res
 
         self._start_tracking(res, gray, tracks, px, boot.point_ids, X_world, T_world_ref,
                              T_world_cur, (stamp_ns - ref.stamp_ns) * 1e-9,
                              [(ref.frame_index, ref.ids, ref.px_ideal, T_world_ref)])
+        self._check_bootstrap_rotation(res, est)
         res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
                        f'{boot.median_parallax_deg:.1f} deg')
         return res
+
+    # ------------------------------------------------------------------ before the map
+    def _orientation_only(self, res: FrameResult, est) -> None:
+        """Publish the orientation of a frame before the map (orientation_only.py,
+        docs/method.md §15.9), once the bootstrap has waited orientation_only_after_s:
+        the position is the attach point's, unknown (unknown_position_sigma)."""
+        chain = self.orientation
+        prev, self._last_orientation = self._last_orientation, est
+        if est is None or chain is None or \
+                (est.stamp_ns - chain.started_ns) * 1e-9 < self.cfg.orientation_only_after_s:
+            return
+        sigma_u2 = self.cfg.unknown_position_sigma ** 2
+        T = self._anchor_T_world_cam.copy()
+        T[:3, :3] = est.R_world_cam
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = sigma_u2 * np.eye(3)
+        cov[3:, 3:] = chain.published_covariance(est)
+        twist_cov = np.zeros((6, 6))
+        twist_cov[:3, :3] = sigma_u2 * np.eye(3)
+        w = np.zeros(3)
+        if prev is not None:
+            w, twist_cov[3:, 3:] = chain.angular_rate(prev, est, chain.model_sigma_rad ** 2)
+        else:
+            twist_cov[3:, 3:] = self.cfg.init_angular_velocity_sigma ** 2 * np.eye(3)
+        res.ok, res.orientation_only = True, True
+        res.T_world_cam = T
+        res.pose_cov = cov + MIN_VARIANCE * np.eye(6)
+        res.twist_cam = np.concatenate((np.zeros(3), w))
+        res.twist_cov = twist_cov + MIN_VARIANCE * np.eye(6)
+        res.health = 'degraded'
+        res.health_reason = ('no map yet (too little parallax to triangulate): '
+                             'orientation only, position unknown')
+
+    def _check_bootstrap_rotation(self, res: FrameResult, est) -> None:
+        """A two-view bootstrap's rotation against the orientation chain's for the same
+        frame (both from the same tracks, by two models: docs/method.md §15.9). At the
+        small parallax a bootstrap starts from, the essential matrix can trade a
+        rotation for a translation; when the two disagree by more than the published
+        covariance allows (chi-square 3 dof, 99 %), the disagreement is evidence of an
+        error it does not hold, kept for the life of this map (as the keyframes' rotation
+        check does, rotation_check.py)."""
+        if est is None or self.orientation is None:
+            return
+        R = res.T_world_cam[:3, :3]
+        d = geo.quat_to_rotvec(geo.matrix_to_quat(est.R_world_cam @ R.T))
+        C = res.pose_cov[3:, 3:] + est.noise_cov_world
+        if float(d @ np.linalg.solve(C, d)) > _CHI2_3DOF_99:
+            self.world_cov.add_rotation_evidence(d)
+            self._published_cov = self._published_cov + self.world_cov.evidence
+            res.pose_cov = res.pose_cov + self.world_cov.evidence
+
+    def _attach_pose(self, X_ref: np.ndarray) -> np.ndarray:
+        """Where a two-view bootstrap attaches its map: the anchor (the world origin, or
+        where a re-bootstrap keeps the pose), turned to the orientation the chain gave
+        the reference frame (orientation_only.py). What the chain did not measure is
+        added to the anchor's covariance: its rotation covariance, and for each
+        reference it went through a translation below the bootstrap's parallax gate."""
+        T = self._anchor_T_world_cam.copy()
+        chain = self.orientation
+        if chain is None:
+            return T
+        extra = np.zeros((6, 6))
+        ref = chain.reference
+        if ref is None:               # the chain broke: the orientation is a guess
+            extra[3:, 3:] = _BROKEN_CHAIN_SIGMA_RAD ** 2 * np.eye(3)
+        else:
+            T[:3, :3] = ref.R_world_cam
+            extra[3:, 3:] = ref.cov_world - chain.start_covariance
+        depth = geo.median_depth(X_ref, np.eye(4)) or 0.0
+        gate = np.radians(self.cfg.bootstrap_min_parallax_deg)
+        extra[:3, :3] = chain.n_references * (np.tan(gate) * depth) ** 2 * np.eye(3)
+        self.world_cov.widen_carried(extra)
+        return T
 
     def _start_tracking(self, res: FrameResult, gray: np.ndarray, tracks: Tracks,
                         px: np.ndarray, point_ids: np.ndarray, X_world: np.ndarray,

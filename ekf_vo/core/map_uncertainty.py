@@ -152,6 +152,16 @@ class WorldCovariance:
         self._carried = (carried + filter_cov, np.asarray(r_now, float).copy())
         self.evidence = np.zeros((6, 6))
 
+    @property
+    def carried_covariance(self) -> np.ndarray:
+        """6x6 covariance a new map is anchored at (zero for the first map)."""
+        return self._carried[0]
+
+    def widen_carried(self, extra: np.ndarray) -> None:
+        """What the anchor's pose is uncertain by beyond the carried covariance (a
+        6x6 at the same centre): the orientation chain before a map."""
+        self._carried = (self._carried[0] + extra, self._carried[1])
+
     def bootstrap_anchor(self, T_world_a: np.ndarray, T_world_b: np.ndarray,
                          X_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Anchor (6x6, centre) of a bootstrap map made from views a (the map's origin,

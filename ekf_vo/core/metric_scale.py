@@ -293,6 +293,13 @@ class MetricScale:
         units: add the scale drift's error to its covariance)."""
         if not (res.ok and res.T_world_cam is not None):
             return
+        if res.orientation_only:
+            # before a map: no position to scale (it is the attach point, published as
+            # unknown); put it where later frames will be published
+            if self.active and self.filter.updates:
+                res.T_world_cam = res.T_world_cam.copy()
+                res.T_world_cam[:3, 3] = self.points(res.T_world_cam[:3, 3])
+            return
         if not self.active:
             self._drift_in_map_units(res, X_world)
             return

@@ -43,6 +43,7 @@ from .map_growth import MapGrowth
 from .map_uncertainty import WorldCovariance
 from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
+from .orientation_only import OrientationChain
 from .refind import MapPointFinder
 from .relocalise import Relocaliser
 from .rotation_check import DeferredCheck
@@ -88,6 +89,12 @@ class VisualOdometry(Initialisation):
         self.n_resets = 0
         self._anchor_T_world_cam = np.eye(4)   # where a new map is attached
         self._anchor_speed = None              # m/s carried over a re-bootstrap
+        # the orientation before a map (docs/method.md §15.9); its own random stream, so
+        # that it does not move the draws of the estimator's RANSACs
+        self.orientation = OrientationChain(
+            camera.K, cfg.pixel_sigma_px, cfg.orientation_only_max_px,
+            np.random.default_rng([seed, 15, 9])) \
+            if cfg.orientation_before_map and cfg.bootstrap == 'two_view' else None
         self._reset_state()
 
     # ------------------------------------------------------------------ control
@@ -98,6 +105,10 @@ class VisualOdometry(Initialisation):
         if self.local_map is not None:
             self.local_map.reset()
         self._ref = None                # the bootstrap's reference frame (initialisation.py)
+        self._last_orientation = None   # the last frame's OrientationChain estimate
+        if self.orientation is not None:
+            self.orientation.restart(self._anchor_T_world_cam[:3, :3],
+                                     self.world_cov.carried_covariance[3:, 3:])
         self._last_stamp_ns: int | None = None
         self._failed_frames = 0
         self.growth.reset()

@@ -273,6 +273,7 @@ def _feed_stream(bag: Path, cfg: VoConfig, seed: int, summary: RunSummary,
             summary.est_pose_cov.append(np.asarray(res.pose_cov, dtype=np.float64))
             summary.est_twist.append(np.asarray(res.twist_cam, dtype=np.float64))
             summary.est_twist_cov.append(np.asarray(res.twist_cov, dtype=np.float64))
+            summary.est_located.append(not res.orientation_only)
 
     def flush(force: bool) -> None:
         """Process the held images whose CameraInfo has come (force: the next image
@@ -380,6 +381,7 @@ def _summarise(summary: RunSummary, stamps_s: list[float], poses: list[np.ndarra
                ) -> None:
     """Tracked %, frames/s, mean stage times and the trajectory into `summary`."""
     summary.frames_ok = len(poses)
+    summary.frames_orientation_only = summary.frames_ok - int(sum(summary.est_located))
     summary.pct_tracked = 100.0 * summary.frames_ok / summary.frames
     summary.fps = summary.frames / max(summary.wall_s, 1e-9)
     stages: dict[str, list[float]] = {}
@@ -402,9 +404,12 @@ def _evaluate_into(summary: RunSummary, gt_ns: np.ndarray, gt_T: np.ndarray,
     if summary.frames_ok == 0:
         summary.eval_error = 'no tracked frame to evaluate'
         return
+    # the poses with a position: an orientation-only one (docs/method.md §15.9) has none
+    located = np.asarray(summary.est_located, bool)
     try:
-        summary.eval = evaluate(gt_ns * 1e-9, gt_T, summary.est_stamps_s,
-                                summary.est_T_world_cam, max_time_diff_s=max_time_diff_s,
+        summary.eval = evaluate(gt_ns * 1e-9, gt_T, summary.est_stamps_s[located],
+                                summary.est_T_world_cam[located],
+                                max_time_diff_s=max_time_diff_s,
                                 n_frames_total=summary.frames)
     except EvaluationError as exc:
         summary.eval_error = str(exc)

@@ -54,6 +54,8 @@ class RunSummary:
         frames_skipped: images not fed (before the first valid CameraInfo, undecodable).
         frames_ok: frames with ``result.ok`` (poses in the trajectory).
         pct_tracked: ``100 * frames_ok / frames`` [%].
+        frames_orientation_only: of frames_ok, poses published before a map with the
+            orientation alone (docs/method.md §15.9): not in the ATE.
         wall_s: wall time of the loop (bag reading, decoding, core) [s].
         fps: ``frames / wall_s`` [frames/s].
         core_fps: frames per second of ``process()`` alone (sum of its 'total' timings).
@@ -79,6 +81,7 @@ class RunSummary:
     frames_skipped: int = 0
     frames_ok: int = 0
     pct_tracked: float = 0.0
+    frames_orientation_only: int = 0
     wall_s: float = 0.0
     fps: float = 0.0
     core_fps: float = 0.0
@@ -93,6 +96,8 @@ class RunSummary:
     #: (N, 6) their twists (v, w in the camera frame) and (N, 6, 6) its covariances
     est_twist: list = field(default_factory=list, repr=False)
     est_twist_cov: list = field(default_factory=list, repr=False)
+    #: (N,) whether each pose has a position (False: orientation only, §15.9)
+    est_located: list = field(default_factory=list, repr=False)
     est_T_world_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)),
                                         repr=False)
     frame_stats: list[FrameStats] = field(default_factory=list, repr=False)
@@ -106,6 +111,7 @@ class RunSummary:
             'bag': self.bag, 'image_topic': self.image_topic, 'info_topic': self.info_topic,
             'gt_topic': self.gt_topic, 'frames': self.frames,
             'frames_skipped': self.frames_skipped, 'frames_ok': self.frames_ok,
+            'frames_orientation_only': self.frames_orientation_only,
             'pct_tracked': self.pct_tracked, 'wall_s': self.wall_s, 'fps': self.fps,
             'core_fps': self.core_fps, 'stage_ms': dict(self.stage_ms),
             'n_resets': self.n_resets, 'n_camera_changes': self.n_camera_changes,
@@ -155,7 +161,9 @@ def format_summary(s: RunSummary) -> str:
         f'bag            {s.bag}',
         f'topics         {s.image_topic}, {s.info_topic}, ground truth: {s.gt_topic or "none"}',
         f'frames         {s.frames} processed, {s.frames_skipped} skipped, '
-        f'{s.frames_ok} tracked ({s.pct_tracked:.1f} %)',
+        f'{s.frames_ok} tracked ({s.pct_tracked:.1f} %)' + (
+            f', {s.frames_orientation_only} of them orientation only (no map yet)'
+            if s.frames_orientation_only else ''),
         f'speed          {s.fps:.1f} frames/s overall, {s.core_fps:.1f} frames/s core',
         'stage ms       ' + ', '.join(f'{k} {v:.2f}' for k, v in s.stage_ms.items()),
         f'resets         {s.n_resets} (calibration changes: {s.n_camera_changes})',

@@ -1,0 +1,220 @@
+"""Orientation before the map: the camera's rotation from its tracks alone
+(docs/method.md §15.9).
+
+Until the bootstrap finds the parallax to triangulate (a camera turning in place, a robot
+standing still) there is no map and no position, but the tracks still fix the rotation:
+under a pure rotation a ray seen along the unit bearing b in the reference frame is seen
+along R_cur_ref b now, whatever its depth. The rotation is the orthogonal Procrustes
+(Kabsch) solution over the tracks the two frames share, with a two-point RANSAC against
+outliers. Its noise covariance, in the current camera frame, is
+
+    sigma^2 (sum_i (I - c_i c_i^T))^-1,   c_i = R_cur_ref b_i,
+
+(each bearing residual constrains the rotation across its ray), sigma the pixel noise
+over the focal length, or the fit's residual if that is larger. A translation is not
+noise: it is absorbed into the rotation, the more so the more all the points lie at one
+depth. What bounds it is what the bootstrap measured on the same pair: a translation
+large enough to matter would have shown as parallax, so the median parallax (or the
+median flow, when the pair was refused before its essential matrix) is added as an
+isotropic model term, the same for the pair's three axes (`model_sigma_rad`).
+
+The rotation is taken against the bootstrap's reference frame (so the absorbed
+translation is bounded by the parallax of that pair, not summed frame after frame) and,
+when that fit fails, against the previous frame. A new reference inherits the orientation
+and the covariance of the frame it is taken at: the chain's covariance grows with each
+reference, as a gyro's would. The world frame is the first frame's camera (or the pose a
+re-bootstrap attaches at), so the map the bootstrap builds later is attached at the
+chain's orientation of its reference frame (pipeline/initialisation.py).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import geometry as geo
+
+#: two-point hypotheses tried per fit (a Kabsch solution each; 64 leave a 1e-7 chance
+#: of missing a 50 % inlier set)
+_HYPOTHESES = 64
+#: share of the common tracks a rotation must explain: a translating camera with depth in
+#: view (a car) leaves the near points' flow unexplained, and is not a rotation
+MIN_INLIER_SHARE = 0.7
+#: fewest inliers for a fit (the rotation has 3 dof; a few tens make it robust)
+MIN_INLIERS = 20
+
+
+def bearings(K_inv: np.ndarray, px_ideal: np.ndarray) -> np.ndarray:
+    """Unit bearings (n,3) of ideal pixels (n,2) in the camera frame."""
+    h = np.column_stack((px_ideal, np.ones(len(px_ideal)))) @ K_inv.T
+    return h / np.linalg.norm(h, axis=1, keepdims=True)
+
+
+def kabsch(b_from: np.ndarray, b_to: np.ndarray) -> np.ndarray:
+    """Rotations R (..., 3, 3) that best map b_from onto b_to (..., n, 3) in least
+    squares: b_to ~ R b_from."""
+    M = np.swapaxes(b_to, -1, -2) @ b_from                  # sum b_to b_from^T
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    return U @ Vt
+
+
+@dataclass
+class RotationFit:
+    """A rotation between two frames from their shared bearings."""
+
+    R_cur_ref: np.ndarray      #: 3x3, b_cur ~ R_cur_ref b_ref
+    cov_cur: np.ndarray        #: 3x3 noise covariance, rotation vector in the current frame
+    n_inliers: int
+    inlier_share: float
+
+
+def fit_rotation(b_ref: np.ndarray, b_cur: np.ndarray, sigma_rad: float, max_rad: float,
+                 rng: np.random.Generator) -> RotationFit | None:
+    """The rotation from matched unit bearings (n,3) of two frames, or None when fewer
+    than MIN_INLIERS of them (or under MIN_INLIER_SHARE) agree with one rotation within
+    max_rad. sigma_rad: the bearings' noise (pixel sigma / focal length)."""
+    n = len(b_ref)
+    if n < MIN_INLIERS:
+        return None
+    pairs = rng.integers(0, n, (_HYPOTHESES, 2))
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    R = kabsch(b_ref[pairs], b_cur[pairs])                            # (h,3,3)
+    resid = np.linalg.norm(b_cur[None] - b_ref @ np.swapaxes(R, -1, -2), axis=2)
+    inliers = resid[int(np.argmax(np.count_nonzero(resid < max_rad, axis=1)))] < max_rad
+    for _ in range(2):                     # refine on the inliers, then take them again
+        if np.count_nonzero(inliers) < MIN_INLIERS:
+            return None
+        R_best = kabsch(b_ref[inliers], b_cur[inliers])
+        r = np.linalg.norm(b_cur - b_ref @ R_best.T, axis=1)
+        inliers = r < max_rad
+    m = int(np.count_nonzero(inliers))
+    if m < MIN_INLIERS or m < MIN_INLIER_SHARE * n:
+        return None
+    c = b_ref[inliers] @ R_best.T
+    info = m * np.eye(3) - c.T @ c                  # sum (I - c c^T)
+    # two residual components per bearing, three parameters fitted
+    s2 = max(sigma_rad ** 2, float(np.sum(r[inliers] ** 2)) / max(2 * m - 3, 1))
+    try:
+        cov = s2 * np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return None
+    return RotationFit(R_best, 0.5 * (cov + cov.T), m, m / n)
+
+
+@dataclass
+class Orientation:
+    """The chain's estimate for one frame."""
+
+    R_world_cam: np.ndarray
+    cov_world: np.ndarray      #: 3x3, world rotation vector: the reference's + this fit's
+    noise_cov_world: np.ndarray  #: 3x3, this frame's fit alone (for the angular rate)
+    stamp_ns: int
+
+
+@dataclass
+class _Frame:
+    ids: np.ndarray
+    b: np.ndarray              # unit bearings
+    est: Orientation | None
+
+
+class OrientationChain:
+    """The orientation of the frames before a map (module docstring)."""
+
+    def __init__(self, K: np.ndarray, sigma_px: float, max_px: float,
+                 rng: np.random.Generator) -> None:
+        self.K_inv = np.linalg.inv(np.asarray(K, float))
+        self.focal = 0.5 * float(K[0, 0] + K[1, 1])
+        self.sigma_rad = float(sigma_px) / self.focal
+        self.max_rad = float(max_px) / self.focal
+        self.rng = rng
+        self.restart(np.eye(3), np.zeros((3, 3)))
+
+    def restart(self, R_world_cam: np.ndarray, cov_world: np.ndarray) -> None:
+        """Start at a known orientation (the world frame, or where a re-bootstrap
+        attaches) with its covariance."""
+        self._start = (np.asarray(R_world_cam, float).copy(), np.asarray(cov_world).copy())
+        self._ref: _Frame | None = None
+        self._prev: _Frame | None = None
+        self.started_ns: int | None = None
+        self.n_references = 0          #: references taken after the first
+        self.model_sigma_rad = 0.0     #: the last pair's translation term
+
+    def track(self, stamp_ns: int, ids: np.ndarray, px_ideal: np.ndarray
+              ) -> Orientation | None:
+        """This frame's orientation (None: no rotation explains its tracks)."""
+        b = bearings(self.K_inv, px_ideal)
+        if self.started_ns is None:
+            self.started_ns = int(stamp_ns)
+            R0, cov0 = self._start
+            est = Orientation(R0, cov0, np.zeros((3, 3)), int(stamp_ns))
+        else:
+            est = None
+            for base in (self._ref, self._prev):
+                if base is not None and base.est is not None:
+                    est = self._chain(base, ids, b, stamp_ns)
+                    if est is not None:
+                        break
+        self._prev = _Frame(ids, b, est)
+        return est
+
+    def _chain(self, base: _Frame, ids: np.ndarray, b: np.ndarray, stamp_ns: int
+               ) -> Orientation | None:
+        _, i_base, i_cur = np.intersect1d(base.ids, ids, assume_unique=True,
+                                          return_indices=True)
+        fit = fit_rotation(base.b[i_base], b[i_cur], self.sigma_rad, self.max_rad, self.rng)
+        if fit is None:
+            return None
+        R = base.est.R_world_cam @ fit.R_cur_ref.T
+        # the fit's error, a rotation vector in the current frame, seen from the world
+        noise = R @ fit.cov_cur @ R.T
+        return Orientation(R, base.est.cov_world + noise, noise, int(stamp_ns))
+
+    def new_reference(self, est: Orientation | None) -> None:
+        """The bootstrap took the last tracked frame as its reference: later frames are
+        fitted against it. Its covariance keeps the translation term of its own pair."""
+        if self._prev is None:
+            return
+        if est is not None and self._ref is not None:
+            est.cov_world = est.cov_world + self.model_sigma_rad ** 2 * np.eye(3)
+            self.n_references += 1
+        self._ref = self._prev
+
+    @property
+    def start_covariance(self) -> np.ndarray:
+        """The rotation covariance the chain started with."""
+        return self._start[1]
+
+    @property
+    def reference(self) -> Orientation | None:
+        """The current reference frame's orientation (None: unknown)."""
+        return None if self._ref is None else self._ref.est
+
+    def published_covariance(self, est: Orientation) -> np.ndarray:
+        """The 3x3 world rotation covariance to publish for `est`: the chain's plus the
+        current pair's translation term."""
+        return est.cov_world + self.model_sigma_rad ** 2 * np.eye(3)
+
+    def set_model_sigma(self, median_parallax_deg: float | None,
+                        median_flow_px: float | None) -> None:
+        """The translation term of the pair just tried (module docstring)."""
+        if median_parallax_deg is not None and np.isfinite(median_parallax_deg):
+            self.model_sigma_rad = float(np.radians(median_parallax_deg))
+        elif median_flow_px is not None and np.isfinite(median_flow_px):
+            self.model_sigma_rad = float(median_flow_px) / self.focal
+
+    @staticmethod
+    def angular_rate(prev: Orientation, cur: Orientation, model_var: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Angular velocity (camera frame, rad/s) between two chained frames and its 3x3
+        covariance."""
+        dt = max((cur.stamp_ns - prev.stamp_ns) * 1e-9, 1e-6)
+        R_rel = prev.R_world_cam.T @ cur.R_world_cam
+        w = geo.quat_to_rotvec(geo.matrix_to_quat(R_rel)) / dt
+        Rc = cur.R_world_cam.T
+        var = Rc @ (prev.noise_cov_world + cur.noise_cov_world) @ Rc.T + \
+            model_var * np.eye(3)
+        return w, var / dt ** 2
