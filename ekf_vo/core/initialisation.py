@@ -86,6 +86,8 @@ class Initialisation:
                 baseline = self._anchor_speed * (stamp_ns - ref.stamp_ns) * 1e-9
             boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
                                               baseline=baseline)
+            if chain is not None:
+                chain.set_model_sigma(boot.median_parallax_deg, boot.median_flow_px)
             if boot.ok:
                 T_world_ref = self._attach_pose(boot.X_ref)
                 T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
@@ -93,8 +95,6 @@ class Initialisation:
         timings['bootstrap'] = (time.perf_counter() - t) * 1e3
         if not boot.ok:
             res.message = f'bootstrap refused: {boot.reason}'
-            if chain is not None:
-                chain.set_model_sigma(boot.median_parallax_deg, boot.median_flow_px)
             self._orientation_only(res, est)
             return res
 
@@ -140,17 +140,23 @@ class Initialisation:
 
     def _check_bootstrap_rotation(self, res: FrameResult, est) -> None:
         """A two-view bootstrap's rotation against the orientation chain's for the same
-        frame (both from the same tracks, by two models: docs/method.md §15.9). At the
-        small parallax a bootstrap starts from, the essential matrix can trade a
-        rotation for a translation; when the two disagree by more than the published
-        covariance allows (chi-square 3 dof, 99 %), the disagreement is evidence of an
-        error it does not hold, kept for the life of this map (as the keyframes' rotation
-        check does, rotation_check.py)."""
-        if est is None or self.orientation is None:
+        frame (both from the same tracks, by two models: docs/method.md §15.9). When they
+        disagree by more than both covariances allow (chi-square 3 dof, 99 %; the
+        chain's with its translation term, the pair's median parallax), one of them is
+        grossly wrong (an essential matrix decomposed into the wrong pose, a rotation
+        fitted to a scene that moved): the disagreement is kept as evidence of an error
+        the published covariance does not hold, for the life of this map (as the
+        keyframes' rotation check does, rotation_check.py). Within the translation term
+        the two cannot be told apart, and the bootstrap is the better model once there
+        is parallax (measured: §15.9)."""
+        chain = self.orientation
+        if est is None or chain is None:
             return
         R = res.T_world_cam[:3, :3]
         d = geo.quat_to_rotvec(geo.matrix_to_quat(est.R_world_cam @ R.T))
-        C = res.pose_cov[3:, 3:] + est.noise_cov_world
+        ref = chain.reference
+        relative = est.cov_world - (ref.cov_world if ref is not None else 0.0)
+        C = res.pose_cov[3:, 3:] + relative + chain.model_sigma_rad ** 2 * np.eye(3)
         if float(d @ np.linalg.solve(C, d)) > _CHI2_3DOF_99:
             self.world_cov.add_rotation_evidence(d)
             self._published_cov = self._published_cov + self.world_cov.evidence

@@ -10,8 +10,8 @@ outliers. Its noise covariance, in the current camera frame, is
 
     sigma^2 (sum_i (I - c_i c_i^T))^-1,   c_i = R_cur_ref b_i,
 
-(each bearing residual constrains the rotation across its ray), sigma the pixel noise
-over the focal length, or the fit's residual if that is larger. A translation is not
+(each bearing residual constrains the rotation across its ray), sigma the pixel noise of
+the two frames (sqrt 2 sigma_px) over the focal length, or the fit's residual if larger. A translation is not
 noise: it is absorbed into the rotation, the more so the more all the points lie at one
 depth. What bounds it is what the bootstrap measured on the same pair: a translation
 large enough to matter would have shown as parallax, so the median parallax (or the
@@ -128,7 +128,8 @@ class OrientationChain:
                  rng: np.random.Generator) -> None:
         self.K_inv = np.linalg.inv(np.asarray(K, float))
         self.focal = 0.5 * float(K[0, 0] + K[1, 1])
-        self.sigma_rad = float(sigma_px) / self.focal
+        # a residual holds the pixel noise of both frames
+        self.sigma_rad = np.sqrt(2.0) * float(sigma_px) / self.focal
         self.max_rad = float(max_px) / self.focal
         self.rng = rng
         self.restart(np.eye(3), np.zeros((3, 3)))
@@ -198,12 +199,13 @@ class OrientationChain:
         current pair's translation term."""
         return est.cov_world + self.model_sigma_rad ** 2 * np.eye(3)
 
-    def set_model_sigma(self, median_parallax_deg: float | None,
-                        median_flow_px: float | None) -> None:
-        """The translation term of the pair just tried (module docstring)."""
-        if median_parallax_deg is not None and np.isfinite(median_parallax_deg):
+    def set_model_sigma(self, median_parallax_deg: float, median_flow_px: float) -> None:
+        """The translation term of the pair just tried (module docstring): its median
+        parallax, or its median flow when it was refused before an essential matrix;
+        neither measured (too few common tracks): the last pair's stays."""
+        if np.isfinite(median_parallax_deg) and median_parallax_deg > 0:
             self.model_sigma_rad = float(np.radians(median_parallax_deg))
-        elif median_flow_px is not None and np.isfinite(median_flow_px):
+        elif np.isfinite(median_flow_px) and median_flow_px > 0:
             self.model_sigma_rad = float(median_flow_px) / self.focal
 
     @staticmethod
