@@ -111,6 +111,15 @@ class VoConfig(_Params):
         0.5, 'Publish orientation-only poses once the bootstrap has waited this long (a '
         'camera that moves bootstraps sooner, and its position is then known).', 's', 0.0,
         3600.0, group='bootstrap')
+    orientation_only_translation_sigma_deg: float = param(
+        0.5, 'The rotation an undetected translation (parallax below the bootstrap\'s gate) '
+        'can pass for in an orientation-only pose: added per reference frame and per pose '
+        '(docs/method.md §15.9).', 'deg', 0.0, 45.0, group='bootstrap')
+    orientation_only_bootstrap_parallax_deg: float = param(
+        4.0, 'Once orientation-only poses are published, the bootstrap waits for this median '
+        'parallax (instead of bootstrap_min_parallax_deg): nothing is lost by waiting, and '
+        'the rotation of a pair at the smaller gate can be degrees off (§15.9).', 'deg',
+        0.1, 45.0, group='bootstrap')
     orientation_only_max_px: float = param(
         3.0, 'A track agrees with a rotation-only fit within this distance.', 'px', 0.1,
         50.0, group='bootstrap')

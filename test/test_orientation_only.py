@@ -115,3 +115,45 @@ def test_the_orientation_before_the_map_can_be_turned_off(rotating_only):
     results = [stream.process(img, stamp) for stamp, img, _ in frames[:40]]
     stream.vo.close()
     assert not any(r.ok for r in results)
+
+
+@pytest.mark.ros
+def test_vo_node_publishes_the_orientation_before_a_map_over_dds(tmp_path, rotating_only):
+    """vo_node over DDS on the camera that only turns: odometry with the orientation and
+    an unknown position, and ~/status WARN saying why."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from ekf_vo import bridge as conv
+    from ekf_vo.ros.harness import Feeder, Harness, NodeProcess, domain_id_for
+    domain = domain_id_for(__name__)
+    info, frames = rotating_only
+    frames = frames[:60]
+    vo = NodeProcess('ekf_vo.ros.vo_node', [
+        '-r', 'image:=/cam/image', '-r', 'camera_info:=/cam/camera_info',
+        '-r', 'odom:=/odom', '-p', 'reliable_qos:=true'], domain, tmp_path / 'vo.log')
+    try:
+        vo.wait_for_output('vo_node ready')
+        h = Harness(domain)
+        try:
+            feed = Feeder(h, info)
+            feed.wait_connected()
+            stamps = feed.publish([(s, g) for s, g, _ in frames],
+                                  lambda k, s, g: conv.numpy_to_image(g, 'mono8', s,
+                                                                      'camera_optical'),
+                                  rate_hz=15.0)
+            feed.wait_last(stamps[-1])
+            h.spin_for(1.0)
+        finally:
+            h.close()
+    finally:
+        vo.stop()
+    assert len(feed.odom) >= 30
+    sigma_u2 = VoConfig().unknown_position_sigma ** 2
+    for msg in feed.odom:
+        cov = np.array(msg.pose.covariance).reshape(6, 6)
+        assert np.allclose(np.diag(cov)[:3], sigma_u2, rtol=1e-6)
+        assert np.all(np.isfinite(cov)) and np.all(np.diag(cov)[3:] > 0)
+        assert np.all(np.diag(cov)[3:] < np.radians(5.0) ** 2)     # the orientation is known
+    last = feed.status[-1].status[0]
+    assert last.level == DiagnosticStatus.WARN
+    assert 'orientation only' in last.message

@@ -252,13 +252,16 @@ class TwoViewBootstrap:
     # ------------------------------------------------------------------ public API
 
     def try_pair(self, ids_ref: np.ndarray, px_ref: np.ndarray, ids_cur: np.ndarray,
-                 px_cur: np.ndarray, baseline: float | None = None) -> BootstrapResult:
+                 px_cur: np.ndarray, baseline: float | None = None,
+                 min_parallax_deg: float | None = None) -> BootstrapResult:
         """Attempt a bootstrap from a reference and a current frame.
 
         Args:
             ids_ref, px_ref: (N,) int64 track ids and (N, 2) IDEAL pixels, reference.
             ids_cur, px_cur: (M,) int64 track ids and (M, 2) IDEAL pixels, current.
             baseline: |t_cur_ref| to impose (map units); default bootstrap_baseline_m.
+            min_parallax_deg: the median parallax the pair must reach; default
+                bootstrap_min_parallax_deg.
 
         Returns:
             BootstrapResult; `ok` False with a `reason` when the pair is refused.
@@ -303,7 +306,8 @@ class TwoViewBootstrap:
         h_over_e = self._homography_ratio(p_ref, p_cur, n_e)
         common = dict(n_common=n_common, median_flow_px=flow, h_over_e=h_over_e,
                       median_parallax_deg=med_par, n_inliers=n_valid, triangulation=tri)
-        min_par = float(cfg.bootstrap_min_parallax_deg)
+        min_par = float(cfg.bootstrap_min_parallax_deg if min_parallax_deg is None
+                        else min_parallax_deg)
         if h_over_e >= H_OVER_E_RATIO and med_par < min_par:
             return self._refuse(
                 f'pure rotation / insufficient parallax: the homography explains '

@@ -84,10 +84,12 @@ class Initialisation:
             if self._anchor_speed is not None and self._anchor_speed > 0:
                 # carry the scale over a re-bootstrap: distance = speed * elapsed time
                 baseline = self._anchor_speed * (stamp_ns - ref.stamp_ns) * 1e-9
+            # once the orientation alone is published, nothing is lost by waiting for a
+            # pair that conditions the map well (docs/method.md §15.9)
+            gate = self.cfg.orientation_only_bootstrap_parallax_deg \
+                if self._orientation_published else None
             boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
-                                              baseline=baseline)
-            if chain is not None:
-                chain.set_model_sigma(boot.median_parallax_deg, boot.median_flow_px)
+                                              baseline=baseline, min_parallax_deg=gate)
             if boot.ok:
                 T_world_ref = self._attach_pose(boot.X_ref)
                 T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
@@ -130,6 +132,7 @@ class Initialisation:
         else:
             twist_cov[3:, 3:] = self.cfg.init_angular_velocity_sigma ** 2 * np.eye(3)
         res.ok, res.orientation_only = True, True
+        self._orientation_published = True
         res.T_world_cam = T
         res.pose_cov = cov + MIN_VARIANCE * np.eye(6)
         res.twist_cam = np.concatenate((np.zeros(3), w))

@@ -12,11 +12,16 @@ outliers. Its noise covariance, in the current camera frame, is
 
 (each bearing residual constrains the rotation across its ray), sigma the pixel noise of
 the two frames (sqrt 2 sigma_px) over the focal length, or the fit's residual if larger. A translation is not
-noise: it is absorbed into the rotation, the more so the more all the points lie at one
-depth. What bounds it is what the bootstrap measured on the same pair: a translation
-large enough to matter would have shown as parallax, so the median parallax (or the
-median flow, when the pair was refused before its essential matrix) is added as an
-isotropic model term, the same for the pair's three axes (`model_sigma_rad`).
+noise: it is absorbed into the rotation (t/d for a translation t across the view at depth
+d), and when the points lie at about one depth no residual shows it. The two-view
+bootstrap refuses pairs whose parallax is below its gate, so a translation whose parallax
+is below the gate goes undetected; the rotation it can pass for is a prior,
+`orientation_only_translation_sigma_deg` (isotropic, `model_sigma_rad`), added to each
+reference's covariance as the chain hands over and to each published frame. (Measured on
+the rendered hand-held camera, 3 cm at 3 m: the chain is off by 0.1-0.9 deg; the median
+parallax the bootstrap triangulates from such pairs says 0.05-0.7 deg with single pairs
+at 9-28 deg, arbitrary as the essential matrix's translation is under a near-pure
+rotation, so it is not used.)
 
 The rotation is taken against the bootstrap's reference frame (so the absorbed
 translation is bounded by the parallax of that pair, not summed frame after frame) and,
@@ -42,6 +47,8 @@ _HYPOTHESES = 64
 MIN_INLIER_SHARE = 0.7
 #: fewest inliers for a fit (the rotation has 3 dof; a few tens make it robust)
 MIN_INLIERS = 20
+#: below this many tracks shared with the reference, the previous frame is fitted instead
+_HANDOVER_TRACKS = 2 * MIN_INLIERS
 
 
 def bearings(K_inv: np.ndarray, px_ideal: np.ndarray) -> np.ndarray:
@@ -69,6 +76,7 @@ class RotationFit:
     cov_cur: np.ndarray        #: 3x3 noise covariance, rotation vector in the current frame
     n_inliers: int
     inlier_share: float
+    rms_rad: float             #: the inliers' residual per component (noise and parallax)
 
 
 def fit_rotation(b_ref: np.ndarray, b_cur: np.ndarray, sigma_rad: float, max_rad: float,
@@ -101,7 +109,8 @@ def fit_rotation(b_ref: np.ndarray, b_cur: np.ndarray, sigma_rad: float, max_rad
         cov = s2 * np.linalg.inv(info)
     except np.linalg.LinAlgError:
         return None
-    return RotationFit(R_best, 0.5 * (cov + cov.T), m, m / n)
+    rms = float(np.sqrt(np.sum(r[inliers] ** 2) / (2 * m)))
+    return RotationFit(R_best, 0.5 * (cov + cov.T), m, m / n, rms)
 
 
 @dataclass
@@ -125,12 +134,14 @@ class OrientationChain:
     """The orientation of the frames before a map (module docstring)."""
 
     def __init__(self, K: np.ndarray, sigma_px: float, max_px: float,
-                 rng: np.random.Generator) -> None:
+                 translation_sigma_deg: float, rng: np.random.Generator) -> None:
         self.K_inv = np.linalg.inv(np.asarray(K, float))
         self.focal = 0.5 * float(K[0, 0] + K[1, 1])
         # a residual holds the pixel noise of both frames
         self.sigma_rad = np.sqrt(2.0) * float(sigma_px) / self.focal
         self.max_rad = float(max_px) / self.focal
+        #: the rotation an undetected translation can pass for (module docstring)
+        self.model_sigma_rad = float(np.radians(translation_sigma_deg))
         self.rng = rng
         self.restart(np.eye(3), np.zeros((3, 3)))
 
@@ -142,7 +153,6 @@ class OrientationChain:
         self._prev: _Frame | None = None
         self.started_ns: int | None = None
         self.n_references = 0          #: references taken after the first
-        self.model_sigma_rad = 0.0     #: the last pair's translation term
 
     def track(self, stamp_ns: int, ids: np.ndarray, px_ideal: np.ndarray
               ) -> Orientation | None:
@@ -153,12 +163,15 @@ class OrientationChain:
             R0, cov0 = self._start
             est = Orientation(R0, cov0, np.zeros((3, 3)), int(stamp_ns))
         else:
-            est = None
-            for base in (self._ref, self._prev):
-                if base is not None and base.est is not None:
-                    est = self._chain(base, ids, b, stamp_ns)
-                    if est is not None:
-                        break
+            # against the reference while it shares enough tracks: a failed fit there
+            # means the motion is not a rotation (the frame is not published); the
+            # previous frame only hands over when the reference's tracks have gone
+            base = self._ref
+            if base is None or base.est is None or \
+                    np.count_nonzero(np.isin(ids, base.ids)) < _HANDOVER_TRACKS:
+                base = self._prev
+            est = None if base is None or base.est is None else \
+                self._chain(base, ids, b, stamp_ns)
         self._prev = _Frame(ids, b, est)
         return est
 
@@ -198,15 +211,6 @@ class OrientationChain:
         """The 3x3 world rotation covariance to publish for `est`: the chain's plus the
         current pair's translation term."""
         return est.cov_world + self.model_sigma_rad ** 2 * np.eye(3)
-
-    def set_model_sigma(self, median_parallax_deg: float, median_flow_px: float) -> None:
-        """The translation term of the pair just tried (module docstring): its median
-        parallax, or its median flow when it was refused before an essential matrix;
-        neither measured (too few common tracks): the last pair's stays."""
-        if np.isfinite(median_parallax_deg) and median_parallax_deg > 0:
-            self.model_sigma_rad = float(np.radians(median_parallax_deg))
-        elif np.isfinite(median_flow_px) and median_flow_px > 0:
-            self.model_sigma_rad = float(median_flow_px) / self.focal
 
     @staticmethod
     def angular_rate(prev: Orientation, cur: Orientation, model_var: float

@@ -93,7 +93,7 @@ class VisualOdometry(Initialisation):
         # that it does not move the draws of the estimator's RANSACs
         self.orientation = OrientationChain(
             camera.K, cfg.pixel_sigma_px, cfg.orientation_only_max_px,
-            np.random.default_rng([seed, 15, 9])) \
+            cfg.orientation_only_translation_sigma_deg, np.random.default_rng([seed, 15, 9])) \
             if cfg.orientation_before_map and cfg.bootstrap == 'two_view' else None
         self._reset_state()
 
@@ -106,6 +106,7 @@ class VisualOdometry(Initialisation):
             self.local_map.reset()
         self._ref = None                # the bootstrap's reference frame (initialisation.py)
         self._last_orientation = None   # the last frame's OrientationChain estimate
+        self._orientation_published = False
         if self.orientation is not None:
             self.orientation.restart(self._anchor_T_world_cam[:3, :3],
                                      self.world_cov.carried_covariance[3:, 3:])
