@@ -147,6 +147,8 @@ def test_vo_node_publishes_the_orientation_before_a_map_over_dds(tmp_path, rotat
             h.close()
     finally:
         vo.stop()
+    # the change is logged once, with its reason
+    assert vo.output().count('-> orientation only: no map yet') == 1
     assert len(feed.odom) >= 30
     sigma_u2 = VoConfig().unknown_position_sigma ** 2
     for msg in feed.odom:
@@ -157,3 +159,23 @@ def test_vo_node_publishes_the_orientation_before_a_map_over_dds(tmp_path, rotat
     last = feed.status[-1].status[0]
     assert last.level == DiagnosticStatus.WARN
     assert 'orientation only' in last.message
+
+
+def test_ekf_vo_run_counts_orientation_only_poses_apart(tmp_path):
+    """A bag of the camera that only turns, through ekf-vo-run: its poses are published
+    and counted as orientation only; with no position there is no ATE, and the report
+    says why in one line instead of failing."""
+    from ekf_vo.tools import synth
+    from ekf_vo.tools.run import run_bag
+    from ekf_vo.tools.run_summary import format_summary
+    bag = tmp_path / 'turning'
+    synth.write_bag(synth.SynthConfig(frames=60, seed=2, trajectory='handheld_rotation'), bag)
+    s = run_bag(bag, out_tum=tmp_path / 'est.tum')
+    assert s.frames_ok >= 60 - 17
+    assert s.frames_orientation_only == s.frames_ok
+    assert s.eval is None and s.eval_error
+    assert 'orientation only' in format_summary(s)
+    assert 'orientation only' in s.eval_error
+    rows = [ln for ln in (tmp_path / 'est.tum').read_text().splitlines()
+            if not ln.startswith('#')]
+    assert len(rows) == s.frames_ok

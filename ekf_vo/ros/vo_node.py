@@ -326,17 +326,20 @@ class VoNode(Node):
 
     # ------------------------------------------------------------------ outputs
     def _log_state_change(self, result) -> None:
-        """initialising -> tracking -> lost, and tracking's ok <-> degraded, logged once
-        per change with the reason."""
+        """initialising (-> orientation only) -> tracking -> lost, and tracking's ok <->
+        degraded, logged once per change with the reason."""
         # the pipeline re-bootstraps at once after a loss: the frame says 'lost: why'
         state_name = 'lost' if result.message.startswith('lost') else result.state.value
         if state_name == 'tracking' and result.health == 'degraded':
             state_name = 'degraded'
+        if result.orientation_only:       # before a map (docs/method.md §15.9)
+            state_name = 'orientation only'
         if state_name == self._last_state:
             return
         previous = self._last_state or 'started'
         self._last_state = state_name
-        why = result.health_reason if state_name == 'degraded' else result.message
+        why = result.health_reason if state_name in ('degraded', 'orientation only') \
+            else result.message
         why = f': {why}' if why else ''
         # rclpy fixes a call site's severity at its first call: one call per severity
         if state_name in ('lost', 'degraded'):

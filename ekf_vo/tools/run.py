@@ -31,7 +31,9 @@ What it does, per image message of the bag (in log-time order):
    online trajectory a node would publish; in metres with a scale source) as TUM text; per-frame statistics as CSV; a
    summary (frames, % tracked, frames/s, mean per-stage ms) and, when the bag has ground
    truth, :func:`ekf_vo.tools.evaluate.evaluate` (ATE after Sim(3), rotation error, %
-   tracked) printed and written to ``--json``.
+   tracked) printed and written to ``--json``. Orientation-only poses (before a map,
+   docs/method.md §15.9) are in the TUM file, at the attach point, and in ``--cov`` with
+   the position's unknown variance; the evaluation leaves them out.
 
 Exit codes: 0 success; 2 bad input (missing bag, no image/CameraInfo topic, unknown or
 invalid parameter). A failed evaluation (e.g. fewer than 3 tracked frames) is reported and
@@ -406,6 +408,10 @@ def _evaluate_into(summary: RunSummary, gt_ns: np.ndarray, gt_T: np.ndarray,
         return
     # the poses with a position: an orientation-only one (docs/method.md §15.9) has none
     located = np.asarray(summary.est_located, bool)
+    if not located.any():
+        summary.eval_error = (f'no pose with a position to evaluate: all '
+                              f'{summary.frames_ok} are orientation only (no map yet)')
+        return
     try:
         summary.eval = evaluate(gt_ns * 1e-9, gt_T, summary.est_stamps_s[located],
                                 summary.est_T_world_cam[located],
