@@ -94,6 +94,8 @@ class Initialisation:
                 T_world_ref = self._attach_pose(boot.X_ref)
                 T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
                 X_world = geo.transform_points(T_world_ref, boot.X_ref)
+            if boot.ok and self._orientation_published:
+                boot = self._against_chain(boot, est)
         timings['bootstrap'] = (time.perf_counter() - t) * 1e3
         if not boot.ok:
             res.message = f'bootstrap refused: {boot.reason}'
@@ -140,6 +142,28 @@ class Initialisation:
         res.health = 'degraded'
         res.health_reason = ('no map yet (too little parallax to triangulate): '
                              'orientation only, position unknown')
+
+    def _against_chain(self, boot, est):
+        """Once orientation-only poses are published, a bootstrap pair whose rotation
+        contradicts the chain's (chi-square 3 dof, 99 %, against the chain's covariance
+        since the reference and its translation prior) is refused: the published
+        orientation holds, and waiting costs nothing (docs/method.md §15.9). Measured on
+        the rendered hand-held camera: a pair at 4 deg of parallax 3.4 deg off."""
+        chain = self.orientation
+        ref = chain.reference
+        if est is None or ref is None:
+            return boot
+        R_cur_ref = est.R_world_cam.T @ ref.R_world_cam
+        d = geo.quat_to_rotvec(geo.matrix_to_quat(boot.R_cur_ref @ R_cur_ref.T))
+        Rc = est.R_world_cam.T
+        C = Rc @ (est.cov_world - ref.cov_world) @ Rc.T + \
+            chain.model_sigma_rad ** 2 * np.eye(3)
+        if float(d @ np.linalg.solve(C, d)) <= _CHI2_3DOF_99:
+            return boot
+        boot.ok = False
+        boot.reason = (f'its rotation is {np.degrees(np.linalg.norm(d)):.1f} deg off the '
+                       f'orientation published before the map')
+        return boot
 
     def _check_bootstrap_rotation(self, res: FrameResult, est) -> None:
         """A two-view bootstrap's rotation against the orientation chain's for the same
