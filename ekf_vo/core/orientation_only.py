@@ -11,25 +11,27 @@ outliers. Its noise covariance, in the current camera frame, is
     sigma^2 (sum_i (I - c_i c_i^T))^-1,   c_i = R_cur_ref b_i,
 
 (each bearing residual constrains the rotation across its ray), sigma the pixel noise of
-the two frames (sqrt 2 sigma_px) over the focal length, or the fit's residual if larger. A translation is not
-noise: it is absorbed into the rotation (t/d for a translation t across the view at depth
-d), and when the points lie at about one depth no residual shows it. The two-view
-bootstrap refuses pairs whose parallax is below its gate, so a translation whose parallax
-is below the gate goes undetected; the rotation it can pass for is a prior,
-`orientation_only_translation_sigma_deg` (isotropic, `model_sigma_rad`), added to each
-reference's covariance as the chain hands over and to each published frame. (Measured on
-the rendered hand-held camera, 3 cm at 3 m: the chain is off by 0.1-0.9 deg; the median
-parallax the bootstrap triangulates from such pairs says 0.05-0.7 deg with single pairs
-at 9-28 deg, arbitrary as the essential matrix's translation is under a near-pure
-rotation, so it is not used.)
+the two frames (sqrt 2 sigma_px) over the focal length, or the fit's residual if larger.
 
-The rotation is taken against the bootstrap's reference frame (so the absorbed
-translation is bounded by the parallax of that pair, not summed frame after frame) and,
-when that fit fails, against the previous frame. A new reference inherits the orientation
-and the covariance of the frame it is taken at: the chain's covariance grows with each
-reference, as a gyro's would. The world frame is the first frame's camera (or the pose a
-re-bootstrap attaches at), so the map the bootstrap builds later is attached at the
-chain's orientation of its reference frame (pipeline/initialisation.py).
+A translation is not noise: it is absorbed into the rotation (t/d for a translation t
+across the view at depth d), and when the points lie at about one depth no residual shows
+it. The two-view bootstrap refuses pairs whose parallax is below its gate, so a
+translation whose parallax is below the gate goes undetected; the rotation it can pass
+for is a prior, `orientation_only_translation_sigma_deg` (isotropic, `model_sigma_rad`),
+added to each reference's covariance as the chain hands over and to each published
+frame. (Measured on the rendered hand-held camera, 3 cm at 3 m: the chain is off by
+0.1-0.9 deg. The median parallax the bootstrap triangulates from such pairs says
+0.05-0.7 deg, with single pairs at 9-28 deg: under a near-pure rotation the essential
+matrix's translation is arbitrary, and so is that parallax; it is not used.)
+
+The rotation is taken against the bootstrap's reference frame, so the absorbed
+translation is bounded by that pair's, not summed frame after frame; when the reference's
+tracks have gone, or it has no orientation, against the last frame that has one. A new
+reference inherits the orientation and the covariance of the frame it is taken at: the
+chain's covariance grows with each reference, as a gyro's would. The world frame is the
+first frame's camera (or the pose a re-bootstrap attaches at), so the map the bootstrap
+builds later is attached at the chain's orientation of its reference frame
+(core/initialisation.py).
 """
 from __future__ import annotations
 
@@ -39,15 +41,15 @@ import numpy as np
 
 from . import geometry as geo
 
-#: two-point hypotheses tried per fit (a Kabsch solution each; 64 leave a 1e-7 chance
-#: of missing a 50 % inlier set)
+#: two-point hypotheses tried per fit (a Kabsch solution each; 64 leave a 1e-8 chance
+#: of missing a 50 % inlier set: 0.75^64)
 _HYPOTHESES = 64
 #: share of the common tracks a rotation must explain: a translating camera with depth in
 #: view (a car) leaves the near points' flow unexplained, and is not a rotation
 MIN_INLIER_SHARE = 0.7
 #: fewest inliers for a fit (the rotation has 3 dof; a few tens make it robust)
 MIN_INLIERS = 20
-#: below this many tracks shared with the reference, the previous frame is fitted instead
+#: below this many tracks shared with the reference, the last frame with an orientation is fitted
 _HANDOVER_TRACKS = 2 * MIN_INLIERS
 
 
@@ -151,6 +153,7 @@ class OrientationChain:
         self._start = (np.asarray(R_world_cam, float).copy(), np.asarray(cov_world).copy())
         self._ref: _Frame | None = None
         self._prev: _Frame | None = None
+        self._last_good: _Frame | None = None      # the last frame with an orientation
         self.started_ns: int | None = None
         self.n_references = 0          #: references taken after the first
 
@@ -164,15 +167,17 @@ class OrientationChain:
             est = Orientation(R0, cov0, np.zeros((3, 3)), int(stamp_ns))
         else:
             # against the reference while it shares enough tracks: a failed fit there
-            # means the motion is not a rotation (the frame is not published); the
-            # previous frame only hands over when the reference's tracks have gone
+            # means the motion is not a rotation (the frame is not published); the last
+            # frame with an orientation only hands over when the reference's tracks have
+            # gone, or when the reference itself has none (its fit failed)
             base = self._ref
             if base is None or base.est is None or \
                     np.count_nonzero(np.isin(ids, base.ids)) < _HANDOVER_TRACKS:
-                base = self._prev
-            est = None if base is None or base.est is None else \
-                self._chain(base, ids, b, stamp_ns)
+                base = self._last_good
+            est = None if base is None else self._chain(base, ids, b, stamp_ns)
         self._prev = _Frame(ids, b, est)
+        if est is not None:
+            self._last_good = self._prev
         return est
 
     def _chain(self, base: _Frame, ids: np.ndarray, b: np.ndarray, stamp_ns: int
