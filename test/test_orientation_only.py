@@ -179,3 +179,23 @@ def test_ekf_vo_run_counts_orientation_only_poses_apart(tmp_path):
     rows = [ln for ln in (tmp_path / 'est.tum').read_text().splitlines()
             if not ln.startswith('#')]
     assert len(rows) == s.frames_ok
+
+
+def test_the_chain_goes_on_when_a_reference_has_no_orientation():
+    """A reference taken at a frame whose fit failed (garbled tracks) does not end the
+    chain: the next good frame is fitted against the last frame with an orientation."""
+    from ekf_vo.core.orientation_only import OrientationChain
+    rng = np.random.default_rng(3)
+    chain = OrientationChain(K, 1.0, 3.0, 0.5, rng)
+    ids = np.arange(200)
+    R = geo.quat_to_matrix(geo.rotvec_to_quat(np.radians([0.0, 6.0, 1.0])))
+    a, b = _views(rng, 200, R, np.zeros(3), noise_px=0.5)
+    first = chain.track(0, ids, a)
+    chain.new_reference(first)
+    garbled = chain.track(33_000_000, ids, rng.uniform((20, 20), (620, 460), (200, 2)))
+    assert garbled is None
+    chain.new_reference(garbled)                    # the bootstrap took it as reference
+    assert chain.reference is None
+    est = chain.track(66_000_000, ids, b)
+    assert est is not None
+    assert _angle_deg(est.R_world_cam @ R) < 0.1    # R_world_cur = R_cur_ref^T
