@@ -51,20 +51,15 @@ def pose_point_jacobians(K: np.ndarray, T_world_cam: np.ndarray, X_world: np.nda
 
 
 def point_consider_covariance(J_pose: np.ndarray, J_X: np.ndarray, sigma_px: np.ndarray,
-                              X_cov: np.ndarray, other_info: np.ndarray | None = None
-                              ) -> np.ndarray:
+                              X_cov: np.ndarray) -> np.ndarray:
     """6x6 pose covariance caused by independent point errors X_cov (n,3,3) (item 1 of
-    the module docstring); sigma_px (n,) the pixel noise of each measurement.
-    `other_info`: the 6x6 information of the update's other measurements (rays without
-    depth, bearing.py), which hold the pose beside the points."""
+    the module docstring); sigma_px (n,) the pixel noise of each measurement."""
     if len(J_pose) < 3:
         return np.zeros((6, 6))
     w = 1.0 / np.asarray(sigma_px, float) ** 2                        # R_i^-1 = w_i I
     w_rows = np.repeat(w, 2)[:, None]                                 # per pixel row
     J_rows = J_pose.reshape(-1, 6)                                    # (2n, 6)
     A = J_rows.T @ (w_rows * J_rows)                                  # sum w J^T J
-    if other_info is not None:
-        A = A + other_info
     proj = J_X @ X_cov @ np.transpose(J_X, (0, 2, 1))                 # (n,2,2) px^2
     B = J_rows.T @ (w_rows ** 2 * (proj @ J_pose).reshape(-1, 6))     # sum w^2 J^T P J
     try:
@@ -186,13 +181,11 @@ class WorldCovariance:
     def compose(self, filter_cov: np.ndarray, T_world_cam: np.ndarray, landmarks,
                 ids: np.ndarray, X_world: np.ndarray, sigma_px: np.ndarray | None,
                 inflation: float = 1.0, remember: bool = True,
-                ray_anchors: tuple[np.ndarray, np.ndarray] | None = None,
-                ray_info: np.ndarray | None = None) -> np.ndarray:
+                ray_anchors: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Published 6x6 covariance of a tracked frame: the filter's `filter_cov` plus
         the map's, from the update's inlier landmarks `ids` at X_world (n,3) measured
         with pixel noise sigma_px (n,) (None: the nominal) and the anchors (covariances
-        (b,6,6), centres (b,3)) of its inlier rays without depth (bearing.py), whose
-        information `ray_info` (6x6) holds the pose beside the points' (term 1).
+        (b,6,6), centres (b,3)) of its inlier rays without depth (bearing.py).
         `inflation` (health.py) scales what this frame measured (the filter's and the
         points' terms), not the anchors: those were inflated when the poses they come
         from were published. `remember`: False for a frame that is not published (a
@@ -207,7 +200,7 @@ class WorldCovariance:
                 J_pose, J_X, front = pose_point_jacobians(self.K, T_world_cam, X_world)
                 self.points_part = point_consider_covariance(
                     J_pose[front], J_X[front], sigma[front],
-                    landmarks.covariances(ids[front]), ray_info)
+                    landmarks.covariances(ids[front]))
             a_cov, a_c = landmarks.anchors(ids)
             if n_rays:
                 a_cov = np.concatenate((a_cov, ray_anchors[0]))

@@ -40,7 +40,7 @@ from .initialisation import Initialisation
 from .local_map import LocalMapper
 from .map import LandmarkMap
 from .map_growth import MapGrowth
-from .map_uncertainty import WorldCovariance, pose_point_jacobians
+from .map_uncertainty import WorldCovariance
 from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
 from .orientation_only import OrientationChain
@@ -302,8 +302,7 @@ class VisualOdometry(Initialisation):
             X[mi], None if sigma is None else sigma[mi], self._inflation,
             remember=self._failed_frames == 0,
             ray_anchors=None if rays is None else (rays.anchor_cov[self._ray_inliers],
-                                                   rays.anchor_c[self._ray_inliers]),
-            ray_info=None if rays is None else self._ray_information(rays))
+                                                   rays.anchor_c[self._ray_inliers]))
 
         res.ok = self._failed_frames == 0
         self._fill_pose(res)
@@ -476,16 +475,6 @@ class VisualOdometry(Initialisation):
         # the first observation's pixel noise fixed the ray: the update adds this one's
         cov += np.eye(2) * c.pixel_sigma_px ** 2
         return BearingMeasurements(rows[keep], X_ray, cov, a_cov[keep], a_c[keep])
-
-    def _ray_information(self, rays: BearingMeasurements) -> np.ndarray:
-        """6x6 pose information of the update's inlier rays (their full 2x2 noise):
-        with a few map points among many rays, the rays hold the pose, and the points'
-        consider term must not take the points alone to fix it (docs/method.md §15.8)."""
-        inl = self._ray_inliers
-        J, _, _ = pose_point_jacobians(self.camera.K, self.ekf.T_world_cam,
-                                       rays.X_world[inl])
-        R = rays.cov_px2[inl] + np.eye(2) * self.cfg.pixel_sigma_px ** 2
-        return np.einsum('nji,njk,nkl->il', J, np.linalg.inv(R), J)
 
     def _update(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
                 X: np.ndarray, sigma: np.ndarray | None,
