@@ -17,9 +17,6 @@ from . import geometry as geo
 from .features import Tracks
 from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
 
-#: rotation std given to a map attached after the orientation chain broke (frames without
-#: a rotation fit before the bootstrap): the orientation is then only the last one known
-_BROKEN_CHAIN_SIGMA_RAD = 0.5
 #: chi-square 3 dof, 99 %: a bootstrap rotation the orientation chain contradicts
 _CHI2_3DOF_99 = 11.34
 
@@ -90,12 +87,12 @@ class Initialisation:
                 if self._orientation_published else None
             boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
                                               baseline=baseline, min_parallax_deg=gate)
+            if boot.ok and self._orientation_published:
+                boot = self._against_chain(boot, est)
             if boot.ok:
                 T_world_ref = self._attach_pose(boot.X_ref)
                 T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
                 X_world = geo.transform_points(T_world_ref, boot.X_ref)
-            if boot.ok and self._orientation_published:
-                boot = self._against_chain(boot, est)
         timings['bootstrap'] = (time.perf_counter() - t) * 1e3
         if not boot.ok:
             res.message = f'bootstrap refused: {boot.reason}'
@@ -105,7 +102,7 @@ class Initialisation:
         self._start_tracking(res, gray, tracks, px, boot.point_ids, X_world, T_world_ref,
                              T_world_cur, (stamp_ns - ref.stamp_ns) * 1e-9,
                              [(ref.frame_index, ref.ids, ref.px_ideal, T_world_ref)])
-        self._check_bootstrap_rotation(res, est)
+        self._check_bootstrap_rotation(res, boot, est)
         res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
                        f'{boot.median_parallax_deg:.1f} deg')
         return res
@@ -143,69 +140,79 @@ class Initialisation:
         res.health_reason = ('no map yet (too little parallax to triangulate): '
                              'orientation only, position unknown')
 
-    def _against_chain(self, boot, est):
-        """Once orientation-only poses are published, a bootstrap pair whose rotation
-        contradicts the chain's (chi-square 3 dof, 99 %, against the chain's covariance
-        since the reference and its translation prior) is refused: the published
-        orientation holds, and waiting costs nothing (docs/method.md §15.9). Measured on
-        the rendered hand-held camera: a pair at 4 deg of parallax 3.4 deg off."""
+    def _chain_disagreement(self, boot, est):
+        """The bootstrap pair's rotation against the orientation chain's for the same
+        two frames (from the same tracks, by two models; docs/method.md §15.9): the
+        difference d (rotation vector, current camera frame) and the chain's covariance
+        of it (its fits since the reference, and its translation prior); None when the
+        chain has no orientation for one of the frames."""
         chain = self.orientation
-        ref = chain.reference
+        ref = None if chain is None else chain.reference
         if est is None or ref is None:
-            return boot
+            return None
         R_cur_ref = est.R_world_cam.T @ ref.R_world_cam
         d = geo.quat_to_rotvec(geo.matrix_to_quat(boot.R_cur_ref @ R_cur_ref.T))
         Rc = est.R_world_cam.T
         C = Rc @ (est.cov_world - ref.cov_world) @ Rc.T + \
             chain.model_sigma_rad ** 2 * np.eye(3)
-        if float(d @ np.linalg.solve(C, d)) <= _CHI2_3DOF_99:
+        return d, C
+
+    def _against_chain(self, boot, est):
+        """Once orientation-only poses are published, the world frame is theirs: a
+        bootstrap pair is refused when the chain cannot place it (no orientation for
+        either frame) or when its rotation contradicts the chain's (chi-square 3 dof,
+        99 %). The published orientation holds, and waiting costs nothing (docs/method.md
+        §15.9). Measured on the rendered hand-held camera: a pair at 4 deg of parallax
+        3.4 deg off."""
+        found = self._chain_disagreement(boot, est)
+        if found is None:
+            boot.ok = False
+            boot.reason = 'no orientation from the tracks to attach the map at'
             return boot
-        boot.ok = False
-        boot.reason = (f'its rotation is {np.degrees(np.linalg.norm(d)):.1f} deg off the '
-                       f'orientation published before the map')
+        d, C = found
+        if float(d @ np.linalg.solve(C, d)) > _CHI2_3DOF_99:
+            boot.ok = False
+            boot.reason = (f'its rotation is {np.degrees(np.linalg.norm(d)):.1f} deg off '
+                           f'the orientation published before the map')
         return boot
 
-    def _check_bootstrap_rotation(self, res: FrameResult, est) -> None:
-        """A two-view bootstrap's rotation against the orientation chain's for the same
-        frame (both from the same tracks, by two models: docs/method.md §15.9). When they
-        disagree by more than both covariances allow (chi-square 3 dof, 99 %; the
-        chain's with its translation term, the pair's median parallax), one of them is
+    def _check_bootstrap_rotation(self, res: FrameResult, boot, est) -> None:
+        """A bootstrap made before any orientation-only pose was published, checked
+        against the chain all the same (docs/method.md §15.9). When the two rotations
+        disagree by more than both covariances allow (chi-square 3 dof, 99 %), one is
         grossly wrong (an essential matrix decomposed into the wrong pose, a rotation
         fitted to a scene that moved): the disagreement is kept as evidence of an error
         the published covariance does not hold, for the life of this map (as the
-        keyframes' rotation check does, rotation_check.py). Within the translation term
-        the two cannot be told apart, and the bootstrap is the better model once there
-        is parallax (measured: §15.9)."""
-        chain = self.orientation
-        if est is None or chain is None:
+        keyframes' rotation check does, rotation_check.py). Within the chain's
+        translation prior the two cannot be told apart, and the bootstrap is the better
+        model once there is parallax (measured: §15.9)."""
+        found = self._chain_disagreement(boot, est)
+        if found is None:
             return
+        d, C = found
         R = res.T_world_cam[:3, :3]
-        d = geo.quat_to_rotvec(geo.matrix_to_quat(est.R_world_cam @ R.T))
-        ref = chain.reference
-        relative = est.cov_world - (ref.cov_world if ref is not None else 0.0)
-        C = res.pose_cov[3:, 3:] + relative + chain.model_sigma_rad ** 2 * np.eye(3)
+        C = C + R.T @ res.pose_cov[3:, 3:] @ R
         if float(d @ np.linalg.solve(C, d)) > _CHI2_3DOF_99:
-            self.world_cov.add_rotation_evidence(d)
+            self.world_cov.add_rotation_evidence(R @ d)
             self._published_cov = self._published_cov + self.world_cov.evidence
             res.pose_cov = res.pose_cov + self.world_cov.evidence
 
     def _attach_pose(self, X_ref: np.ndarray) -> np.ndarray:
         """Where a two-view bootstrap attaches its map: the anchor (the world origin, or
-        where a re-bootstrap keeps the pose), turned to the orientation the chain gave
-        the reference frame (orientation_only.py). What the chain did not measure is
-        added to the anchor's covariance: its rotation covariance, and for each
-        reference it went through a translation below the bootstrap's parallax gate."""
+        where a re-bootstrap keeps the pose). Once orientation-only poses have been
+        published, turned to the orientation the chain gave the reference frame
+        (orientation_only.py; _against_chain made sure there is one), and what the chain
+        did not measure is added to the anchor's covariance: its rotation covariance, and
+        for each reference it went through a translation below the bootstrap's parallax
+        gate. Before any was published the map goes where it always went."""
         T = self._anchor_T_world_cam.copy()
         chain = self.orientation
-        if chain is None:
+        if chain is None or not self._orientation_published:
             return T
-        extra = np.zeros((6, 6))
         ref = chain.reference
-        if ref is None:               # the chain broke: the orientation is a guess
-            extra[3:, 3:] = _BROKEN_CHAIN_SIGMA_RAD ** 2 * np.eye(3)
-        else:
-            T[:3, :3] = ref.R_world_cam
-            extra[3:, 3:] = ref.cov_world - chain.start_covariance
+        extra = np.zeros((6, 6))
+        T[:3, :3] = ref.R_world_cam
+        extra[3:, 3:] = ref.cov_world - chain.start_covariance
         depth = geo.median_depth(X_ref, np.eye(4)) or 0.0
         gate = np.radians(self.cfg.bootstrap_min_parallax_deg)
         extra[:3, :3] = chain.n_references * (np.tan(gate) * depth) ** 2 * np.eye(3)
