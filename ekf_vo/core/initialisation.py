@@ -81,16 +81,18 @@ class Initialisation:
             if self._anchor_speed is not None and self._anchor_speed > 0:
                 # carry the scale over a re-bootstrap: distance = speed * elapsed time
                 baseline = self._anchor_speed * (stamp_ns - ref.stamp_ns) * 1e-9
-            # once the orientation alone is published, nothing is lost by waiting for a
-            # pair that conditions the map well (docs/method.md §15.9)
-            gate = self.cfg.orientation_only_bootstrap_parallax_deg \
-                if self._orientation_published else None
+            # once the orientation alone is published and the frame is still a rotation,
+            # nothing is lost by waiting for a pair that conditions the map well and
+            # agrees with it; a frame the chain cannot fit translates, and the essential
+            # matrix is then the better model (docs/method.md §15.9)
+            strict = self._orientation_published and est is not None
+            gate = self.cfg.orientation_only_bootstrap_parallax_deg if strict else None
             boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
                                               baseline=baseline, min_parallax_deg=gate)
-            if boot.ok and self._orientation_published:
+            if boot.ok and strict:
                 boot = self._against_chain(boot, est)
             if boot.ok:
-                T_world_ref = self._attach_pose(boot.X_ref)
+                T_world_ref = self._attach_pose(boot.X_ref, ref.stamp_ns)
                 T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
                 X_world = geo.transform_points(T_world_ref, boot.X_ref)
         timings['bootstrap'] = (time.perf_counter() - t) * 1e3
@@ -158,16 +160,16 @@ class Initialisation:
         return d, C
 
     def _against_chain(self, boot, est):
-        """Once orientation-only poses are published, the world frame is theirs: a
-        bootstrap pair is refused when the chain cannot place it (no orientation for
-        either frame) or when its rotation contradicts the chain's (chi-square 3 dof,
-        99 %). The published orientation holds, and waiting costs nothing (docs/method.md
-        §15.9). Measured on the rendered hand-held camera: a pair at 4 deg of parallax
-        3.4 deg off."""
+        """Once orientation-only poses are published and the current frame is still a
+        rotation, a bootstrap pair whose rotation contradicts the chain's (chi-square 3
+        dof, 99 %) is refused, and so is one whose reference frame has no orientation of
+        its own: the published orientation holds, and waiting costs nothing
+        (docs/method.md §15.9). Measured on the rendered hand-held camera: a pair at 4 deg
+        of parallax 3.4 deg off."""
         found = self._chain_disagreement(boot, est)
         if found is None:
             boot.ok = False
-            boot.reason = 'no orientation from the tracks to attach the map at'
+            boot.reason = 'its reference frame has no orientation from the tracks'
             return boot
         d, C = found
         if float(d @ np.linalg.solve(C, d)) > _CHI2_3DOF_99:
@@ -197,22 +199,24 @@ class Initialisation:
             self._published_cov = self._published_cov + self.world_cov.evidence
             res.pose_cov = res.pose_cov + self.world_cov.evidence
 
-    def _attach_pose(self, X_ref: np.ndarray) -> np.ndarray:
+    def _attach_pose(self, X_ref: np.ndarray, ref_stamp_ns: int) -> np.ndarray:
         """Where a two-view bootstrap attaches its map: the anchor (the world origin, or
         where a re-bootstrap keeps the pose). Once orientation-only poses have been
-        published, turned to the orientation the chain gave the reference frame
-        (orientation_only.py; _against_chain made sure there is one), and what the chain
-        did not measure is added to the anchor's covariance: its rotation covariance, and
-        for each reference it went through a translation below the bootstrap's parallax
-        gate. Before any was published the map goes where it always went."""
+        published, turned to the orientation the chain gave the reference frame (or the
+        last one it knew, when the camera was translating then: uncertain by a turn at
+        init_angular_velocity_sigma since), and what the chain did not measure is added
+        to the anchor's covariance: its rotation covariance, and for each reference it
+        went through a translation below the bootstrap's parallax gate. Before any was
+        published the map goes where it always went."""
         T = self._anchor_T_world_cam.copy()
         chain = self.orientation
         if chain is None or not self._orientation_published:
             return T
-        ref = chain.reference
+        R_ref, cov_ref = chain.reference_or_last(ref_stamp_ns,
+                                                 self.cfg.init_angular_velocity_sigma)
         extra = np.zeros((6, 6))
-        T[:3, :3] = ref.R_world_cam
-        extra[3:, 3:] = ref.cov_world - chain.start_covariance
+        T[:3, :3] = R_ref
+        extra[3:, 3:] = cov_ref - chain.start_covariance
         depth = geo.median_depth(X_ref, np.eye(4)) or 0.0
         gate = np.radians(self.cfg.bootstrap_min_parallax_deg)
         extra[:3, :3] = chain.n_references * (np.tan(gate) * depth) ** 2 * np.eye(3)

@@ -212,6 +212,18 @@ class OrientationChain:
         """The current reference frame's orientation (None: unknown)."""
         return None if self._ref is None else self._ref.est
 
+    def reference_or_last(self, stamp_ns: int, rate_sigma: float
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """(R_world_cam, 3x3 world covariance) of the reference frame taken at
+        `stamp_ns`: its own orientation, or, when its fit failed (the camera was
+        translating), the last orientation known before it, uncertain by a turn at
+        `rate_sigma` [rad/s] over the time between."""
+        if self._ref is not None and self._ref.est is not None:
+            return self._ref.est.R_world_cam, self._ref.est.cov_world
+        last = self._last_good.est
+        dt = max(stamp_ns - last.stamp_ns, 0) * 1e-9
+        return last.R_world_cam, last.cov_world + (rate_sigma * dt) ** 2 * np.eye(3)
+
     def published_covariance(self, est: Orientation) -> np.ndarray:
         """The 3x3 world rotation covariance to publish for `est`: the chain's plus the
         current pair's translation term."""
