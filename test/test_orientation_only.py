@@ -199,3 +199,40 @@ def test_the_chain_goes_on_when_a_reference_has_no_orientation():
     est = chain.track(66_000_000, ids, b)
     assert est is not None
     assert _angle_deg(est.R_world_cam @ R) < 0.1    # R_world_cur = R_cur_ref^T
+
+
+def test_a_car_that_stands_then_drives_publishes_its_orientation_then_its_map():
+    """KITTI 06 with its first image held for 2 s (a car at a light): the orientation
+    alone while it stands, then the map as soon as it drives, where the stream without
+    the orientation before the map bootstraps too: the chain does not hold a translating
+    camera back."""
+    from ekf_vo.io.dataset import load_folder
+    from .support.data import need_shared_data
+    data = load_folder(need_shared_data('kitti06_f0-50', 'a car that stands, then drives'))
+    frames = list(data.frames())
+    t0, still = frames[0]
+    seq = [(t0 + k * 100_000_000, still) for k in range(20)] + \
+        [(t + 19 * 100_000_000, g) for t, g in frames[1:]]
+
+    def first_located(**overrides):
+        stream = _stream(data.camera, **overrides)
+        results = [stream.process(g, t) for t, g in seq]
+        stream.vo.close()
+        located = [k for k, r in enumerate(results) if r.ok and not r.orientation_only]
+        return results, located[0] if located else None
+
+    results, first = first_located()
+    assert sum(r.orientation_only for r in results[:20]) >= 10
+    _, first_off = first_located(orientation_before_map=False)
+    assert first_off is not None and first == first_off
+    # the filter starts at the speed of the last frames, not of the whole wait: the
+    # path is the one without the wait (within a few per cent), not several times shorter
+    moving = [r.T_world_cam[:3, 3] for r in results[first:] if r.ok]
+    stream = _stream(data.camera)
+    plain = [stream.process(g, t) for t, g in frames]
+    stream.vo.close()
+    plain = [r.T_world_cam[:3, 3] for r in plain if r.ok]
+
+    def length(p):
+        return float(np.sum(np.linalg.norm(np.diff(np.array(p), axis=0), axis=1)))
+    assert abs(length(moving) / length(plain) - 1.0) < 0.1

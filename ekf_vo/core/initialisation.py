@@ -19,6 +19,9 @@ from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
 
 #: chi-square 3 dof, 99 %: a bootstrap rotation the orientation chain contradicts
 _CHI2_3DOF_99 = 11.34
+#: the bootstrap pair's motion took less than this share of its time: the camera stood
+#: still before (Initialisation._motion_time)
+_STOOD_STILL_SHARE = 0.5
 
 
 @dataclass
@@ -51,6 +54,7 @@ class Initialisation:
                     known_T: np.ndarray | None) -> FrameResult:
         tracks, px, res = self._track_initialising(gray, stamp_ns)
         timings = res.timings_ms
+        prev, self._last_initialising = self._last_initialising, (stamp_ns, tracks.ids, px)
         chain = self.orientation if known_T is None else None
         est = None if chain is None else chain.track(stamp_ns, tracks.ids, px)
         ref = self._ref
@@ -102,12 +106,37 @@ class Initialisation:
             return res
 
         self._start_tracking(res, gray, tracks, px, boot.point_ids, X_world, T_world_ref,
-                             T_world_cur, (stamp_ns - ref.stamp_ns) * 1e-9,
+                             T_world_cur, self._motion_time(ref, prev, tracks.ids, px,
+                                                            stamp_ns),
                              [(ref.frame_index, ref.ids, ref.px_ideal, T_world_ref)])
         self._check_bootstrap_rotation(res, boot, est)
         res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
                        f'{boot.median_parallax_deg:.1f} deg')
         return res
+
+    @staticmethod
+    def _motion_time(ref: _Reference, prev, ids: np.ndarray, px: np.ndarray,
+                     stamp_ns: int) -> float:
+        """Over how long the bootstrap pair's motion happened [s]: the time since the
+        reference, unless the camera stood still for most of it (a car at a light, a
+        robot that waits): then the motion is that of the last frame interval scaled by
+        its share of the pair's flow. The filter's first velocities are the pair's motion
+        over this time (§3.6): over the whole wait they would be several times too slow,
+        and the first predictions would miss the tracks."""
+        dt = (stamp_ns - ref.stamp_ns) * 1e-9
+        if prev is None or prev[0] <= ref.stamp_ns:
+            return dt
+        _, i_ref, i_cur = np.intersect1d(ref.ids, ids, return_indices=True)
+        _, i_prev, j_cur = np.intersect1d(prev[1], ids, return_indices=True)
+        flow_pair = np.median(np.linalg.norm(px[i_cur] - ref.px_ideal[i_ref], axis=1)) \
+            if len(i_cur) else 0.0
+        flow_last = np.median(np.linalg.norm(px[j_cur] - prev[2][i_prev], axis=1)) \
+            if len(j_cur) else 0.0
+        if not flow_pair > 0:
+            return dt
+        moving = min((stamp_ns - prev[0]) * 1e-9 * flow_pair / max(flow_last, 1e-9), dt)
+        # a steady motion gives about dt: kept as is unless the wait is clear
+        return moving if moving < _STOOD_STILL_SHARE * dt else dt
 
     # ------------------------------------------------------------------ before the map
     def _orientation_only(self, res: FrameResult, est) -> None:

@@ -106,6 +106,7 @@ class VisualOdometry(Initialisation):
             self.local_map.reset()
         self._ref = None                # the bootstrap's reference frame (initialisation.py)
         self._last_orientation = None   # the last frame's OrientationChain estimate
+        self._last_initialising = None  # (stamp, ids, ideal px) of the last such frame
         self._orientation_published = False
         if self.orientation is not None:
             self.orientation.restart(self._anchor_T_world_cam[:3, :3],
