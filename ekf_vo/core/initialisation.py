@@ -85,11 +85,12 @@ class Initialisation:
             if self._anchor_speed is not None and self._anchor_speed > 0:
                 # carry the scale over a re-bootstrap: distance = speed * elapsed time
                 baseline = self._anchor_speed * (stamp_ns - ref.stamp_ns) * 1e-9
-            # once the orientation alone is published and the frame is still a rotation,
+            # once the orientation alone is published and the camera still turns,
             # nothing is lost by waiting for a pair that conditions the map well and
-            # agrees with it; a frame the chain cannot fit translates, and the essential
-            # matrix is then the better model (docs/method.md §15.9)
-            strict = self._orientation_published and est is not None
+            # agrees with it; a camera that translates is the essential matrix's case
+            # (docs/method.md §15.9)
+            strict = chain is not None and self._orientation_published and \
+                not chain.translating
             gate = self.cfg.orientation_only_bootstrap_parallax_deg if strict else None
             boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
                                               baseline=baseline, min_parallax_deg=gate)

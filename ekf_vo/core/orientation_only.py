@@ -154,6 +154,7 @@ class OrientationChain:
         self._ref: _Frame | None = None
         self._prev: _Frame | None = None
         self._last_good: _Frame | None = None      # the last frame with an orientation
+        self.translating = False       #: the last frame tracked moved by more than a turn
         self.started_ns: int | None = None
         self.n_references = 0          #: references taken after the first
 
@@ -175,10 +176,23 @@ class OrientationChain:
                     np.count_nonzero(np.isin(ids, base.ids)) < _HANDOVER_TRACKS:
                 base = self._last_good
             est = None if base is None else self._chain(base, ids, b, stamp_ns)
+        # translating: not even the step from the previous frame is a rotation (a car's
+        # near points); a fit against the reference can also fail on a few tracks at the
+        # image's edge while the camera turns, and then the step is one
+        self.translating = est is None and not self._turned_from(self._prev, ids, b)
         self._prev = _Frame(ids, b, est)
         if est is not None:
             self._last_good = self._prev
         return est
+
+    def _turned_from(self, base: _Frame | None, ids: np.ndarray, b: np.ndarray) -> bool:
+        """Whether a rotation explains the step from `base` to these tracks."""
+        if base is None:
+            return False
+        _, i_base, i_cur = np.intersect1d(base.ids, ids, assume_unique=True,
+                                          return_indices=True)
+        return fit_rotation(base.b[i_base], b[i_cur], self.sigma_rad, self.max_rad,
+                            self.rng) is not None
 
     def _chain(self, base: _Frame, ids: np.ndarray, b: np.ndarray, stamp_ns: int
                ) -> Orientation | None:
