@@ -108,7 +108,7 @@ class Initialisation:
 
         self._start_tracking(res, gray, tracks, px, boot.point_ids, X_world, T_world_ref,
                              T_world_cur, self._motion_time(ref, prev, tracks.ids, px,
-                                                            stamp_ns),
+                                                            stamp_ns, boot.median_flow_px),
                              [(ref.frame_index, ref.ids, ref.px_ideal, T_world_ref)])
         self._check_bootstrap_rotation(res, boot, est)
         res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
@@ -117,24 +117,20 @@ class Initialisation:
 
     @staticmethod
     def _motion_time(ref: _Reference, prev, ids: np.ndarray, px: np.ndarray,
-                     stamp_ns: int) -> float:
+                     stamp_ns: int, flow_pair: float) -> float:
         """Over how long the bootstrap pair's motion happened [s]: the time since the
         reference, unless the camera stood still for most of it (a car at a light, a
         robot that waits): then the motion is that of the last frame interval scaled by
-        its share of the pair's flow. The filter's first velocities are the pair's motion
+        its share of the pair's flow (`flow_pair`, the pair's median flow [px], as the
+        bootstrap measured it). The filter's first velocities are the pair's motion
         over this time (§3.6): over the whole wait they would be several times too slow,
         and the first predictions would miss the tracks."""
         dt = (stamp_ns - ref.stamp_ns) * 1e-9
-        if prev is None or prev[0] <= ref.stamp_ns:
+        if prev is None or prev[0] <= ref.stamp_ns or not flow_pair > 0:
             return dt
-        _, i_ref, i_cur = np.intersect1d(ref.ids, ids, return_indices=True)
         _, i_prev, j_cur = np.intersect1d(prev[1], ids, return_indices=True)
-        flow_pair = np.median(np.linalg.norm(px[i_cur] - ref.px_ideal[i_ref], axis=1)) \
-            if len(i_cur) else 0.0
         flow_last = np.median(np.linalg.norm(px[j_cur] - prev[2][i_prev], axis=1)) \
             if len(j_cur) else 0.0
-        if not flow_pair > 0:
-            return dt
         moving = min((stamp_ns - prev[0]) * 1e-9 * flow_pair / max(flow_last, 1e-9), dt)
         # a steady motion gives about dt: kept as is unless the wait is clear
         return moving if moving < _STOOD_STILL_SHARE * dt else dt
@@ -145,7 +141,6 @@ class Initialisation:
         docs/method.md §15.9), once the bootstrap has waited orientation_only_after_s:
         the position is the attach point's, unknown (unknown_position_sigma)."""
         chain = self.orientation
-        prev, self._last_orientation = self._last_orientation, est
         if est is None or chain is None or \
                 (est.stamp_ns - chain.started_ns) * 1e-9 < self.cfg.orientation_only_after_s:
             return
@@ -158,8 +153,9 @@ class Initialisation:
         twist_cov = np.zeros((6, 6))
         twist_cov[:3, :3] = sigma_u2 * np.eye(3)
         w = np.zeros(3)
-        if prev is not None:
-            w, twist_cov[3:, 3:] = chain.angular_rate(prev, est, chain.model_sigma_rad ** 2)
+        if chain.previous is not None:
+            w, twist_cov[3:, 3:] = chain.angular_rate(chain.previous, est,
+                                                      chain.model_sigma_rad ** 2)
         else:
             twist_cov[3:, 3:] = self.cfg.init_angular_velocity_sigma ** 2 * np.eye(3)
         res.ok, res.orientation_only = True, True

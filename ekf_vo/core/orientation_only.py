@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import geometry as geo
+from .camera import PinholeCamera
 
 #: two-point hypotheses tried per fit (a Kabsch solution each; 64 leave a 1e-8 chance
 #: of missing a 50 % inlier set: 0.75^64)
@@ -51,12 +52,6 @@ MIN_INLIER_SHARE = 0.7
 MIN_INLIERS = 20
 #: below this many tracks shared with the reference, the last frame with an orientation is fitted
 _HANDOVER_TRACKS = 2 * MIN_INLIERS
-
-
-def bearings(K_inv: np.ndarray, px_ideal: np.ndarray) -> np.ndarray:
-    """Unit bearings (n,3) of ideal pixels (n,2) in the camera frame."""
-    h = np.column_stack((px_ideal, np.ones(len(px_ideal)))) @ K_inv.T
-    return h / np.linalg.norm(h, axis=1, keepdims=True)
 
 
 def kabsch(b_from: np.ndarray, b_to: np.ndarray) -> np.ndarray:
@@ -135,10 +130,10 @@ class _Frame:
 class OrientationChain:
     """The orientation of the frames before a map (module docstring)."""
 
-    def __init__(self, K: np.ndarray, sigma_px: float, max_px: float,
+    def __init__(self, camera: PinholeCamera, sigma_px: float, max_px: float,
                  translation_sigma_deg: float, rng: np.random.Generator) -> None:
-        self.K_inv = np.linalg.inv(np.asarray(K, float))
-        self.focal = 0.5 * float(K[0, 0] + K[1, 1])
+        self.unproject = camera.unproject        # ideal pixels -> unit bearings
+        self.focal = 0.5 * float(camera.fx + camera.fy)
         # a residual holds the pixel noise of both frames
         self.sigma_rad = np.sqrt(2.0) * float(sigma_px) / self.focal
         self.max_rad = float(max_px) / self.focal
@@ -153,6 +148,8 @@ class OrientationChain:
         self._start = (np.asarray(R_world_cam, float).copy(), np.asarray(cov_world).copy())
         self._ref: _Frame | None = None
         self._prev: _Frame | None = None
+        #: the orientation of the frame tracked before the last one (for the angular rate)
+        self.previous: Orientation | None = None
         self._last_good: _Frame | None = None      # the last frame with an orientation
         self.translating = False       #: the last frame tracked moved by more than a turn
         self.started_ns: int | None = None
@@ -161,7 +158,7 @@ class OrientationChain:
     def track(self, stamp_ns: int, ids: np.ndarray, px_ideal: np.ndarray
               ) -> Orientation | None:
         """This frame's orientation (None: no rotation explains its tracks)."""
-        b = bearings(self.K_inv, px_ideal)
+        b = self.unproject(px_ideal)
         if self.started_ns is None:
             self.started_ns = int(stamp_ns)
             R0, cov0 = self._start
@@ -179,26 +176,24 @@ class OrientationChain:
         # translating: not even the step from the previous frame is a rotation (a car's
         # near points); a fit against the reference can also fail on a few tracks at the
         # image's edge while the camera turns, and then the step is one
-        self.translating = est is None and not self._turned_from(self._prev, ids, b)
+        self.translating = est is None and (
+            self._prev is None or self._fit(self._prev, ids, b) is None)
+        self.previous = None if self._prev is None else self._prev.est
         self._prev = _Frame(ids, b, est)
         if est is not None:
             self._last_good = self._prev
         return est
 
-    def _turned_from(self, base: _Frame | None, ids: np.ndarray, b: np.ndarray) -> bool:
-        """Whether a rotation explains the step from `base` to these tracks."""
-        if base is None:
-            return False
+    def _fit(self, base: _Frame, ids: np.ndarray, b: np.ndarray) -> RotationFit | None:
+        """The rotation from `base` to the tracks (ids, bearings b) they share."""
         _, i_base, i_cur = np.intersect1d(base.ids, ids, assume_unique=True,
                                           return_indices=True)
         return fit_rotation(base.b[i_base], b[i_cur], self.sigma_rad, self.max_rad,
-                            self.rng) is not None
+                            self.rng)
 
     def _chain(self, base: _Frame, ids: np.ndarray, b: np.ndarray, stamp_ns: int
                ) -> Orientation | None:
-        _, i_base, i_cur = np.intersect1d(base.ids, ids, assume_unique=True,
-                                          return_indices=True)
-        fit = fit_rotation(base.b[i_base], b[i_cur], self.sigma_rad, self.max_rad, self.rng)
+        fit = self._fit(base, ids, b)
         if fit is None:
             return None
         R = base.est.R_world_cam @ fit.R_cur_ref.T

@@ -92,7 +92,7 @@ class VisualOdometry(Initialisation):
         # the orientation before a map (docs/method.md §15.9); its own random stream, so
         # that it does not move the draws of the estimator's RANSACs
         self.orientation = OrientationChain(
-            camera.K, cfg.pixel_sigma_px, cfg.orientation_only_max_px,
+            camera, cfg.pixel_sigma_px, cfg.orientation_only_max_px,
             cfg.orientation_only_translation_sigma_deg, np.random.default_rng([seed, 15, 9])) \
             if cfg.orientation_before_map and cfg.bootstrap == 'two_view' else None
         self._reset_state()
@@ -105,7 +105,6 @@ class VisualOdometry(Initialisation):
         if self.local_map is not None:
             self.local_map.reset()
         self._ref = None                # the bootstrap's reference frame (initialisation.py)
-        self._last_orientation = None   # the last frame's OrientationChain estimate
         self._last_initialising = None  # (stamp, ids, ideal px) of the last such frame
         self._orientation_published = False
         if self.orientation is not None:
