@@ -218,6 +218,70 @@ def test_pure_rotation_is_refused() -> None:
     assert res.median_flow_px > 50          # the flow is large: only geometry can tell
 
 
+def _relief_or_plane(relief: bool, kept_share: float):
+    """1 px noise, 0.25 m sideways at 4-12 m (about 1.5 deg of median parallax): points
+    with depth relief, or the same points flattened onto a wall at 8 m."""
+    rng = np.random.default_rng(12)
+    X = scene(12)
+    if not relief:
+        X = X * (8.0 / X[:, 2:3])
+    p1, v1 = observe(np.eye(4), X, rng, 1.0)
+    p2, v2 = observe(pose(rot([0.0, 1.0, 0.0], 0.5), [0.25, 0.0, 0.0]), X, rng, 1.0)
+    ids = np.arange(len(X), dtype=np.int64)
+    return TwoViewBootstrap(VoConfig(), K).try_pair(ids[v1], p1[v1], ids[v2], p2[v2],
+                                                   kept_share=kept_share)
+
+
+def test_depth_relief_lowers_the_parallax_gate_when_the_tracks_run_out() -> None:
+    cfg = VoConfig()
+    # the tracks go: a tenth of them is expected in the next frame
+    res = _relief_or_plane(relief=True, kept_share=0.1)
+    assert res.ok, res.reason
+    assert res.h_over_e < cfg.bootstrap_relief_h_over_e
+    assert cfg.bootstrap_relief_parallax_deg <= res.median_parallax_deg \
+        < cfg.bootstrap_min_parallax_deg
+    # the same pair while the tracks last: wait for the full parallax
+    res = _relief_or_plane(relief=True, kept_share=1.0)
+    assert not res.ok and 'waiting while the tracks last' in res.reason
+    # the same motion before a wall: the homography explains it, the full gate holds
+    res = _relief_or_plane(relief=False, kept_share=0.1)
+    assert not res.ok and 'parallax' in res.reason
+    assert res.h_over_e >= cfg.bootstrap_relief_h_over_e
+
+
+def _kitti_first_poses(step: int):
+    """KITTI 06 through VoStream, every `step`-th frame at 10 Hz: the results."""
+    from ekf_vo.core.stream import VoStream
+    from ekf_vo.io.dataset import load_folder
+    from .support.data import need_shared_data
+    data = load_folder(need_shared_data('kitti06_f0-50', 'a car bootstraps'))
+    frames = list(data.frames())[::step]
+    stream = VoStream(VoConfig(), seed=0)
+    stream.set_camera(data.camera)
+    dt = frames[1][0] - frames[0][0] if step == 1 else (frames[1][0] - frames[0][0]) // step
+    out = [stream.process(gray, frames[0][0] + k * dt) for k, (_, gray) in
+           enumerate(frames[:20])]
+    stream.vo.close()
+    return out
+
+
+def test_a_car_at_10_hz_waits_for_the_full_parallax_while_its_tracks_last() -> None:
+    res = _kitti_first_poses(1)
+    first = next(k for k, r in enumerate(res) if r.ok)
+    assert first == 2
+    assert 'waiting while the tracks last' in res[1].message
+    assert all(r.ok for r in res[first:])
+
+
+def test_a_car_at_twice_the_speed_bootstraps_before_its_tracks_are_gone() -> None:
+    # 2.4 m a frame at 10 Hz (a highway): half the tracks go each frame, so the pair
+    # that is there is taken at the lower gate instead of waiting (it waited 18 frames)
+    res = _kitti_first_poses(2)
+    first = next(k for k, r in enumerate(res) if r.ok)
+    assert first == 1, [r.message for r in res[:first + 1]]
+    assert all(r.ok for r in res[first:])
+
+
 def test_too_few_points_and_tiny_motion_are_refused() -> None:
     X, T1, T2, ids1, p1, ids2, p2 = sideways_pair(9, n=40)
     res = TwoViewBootstrap(VoConfig(), K).try_pair(ids1, p1, ids2, p2)

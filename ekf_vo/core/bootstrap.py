@@ -244,16 +244,20 @@ class TwoViewBootstrap:
         self.K = K
         f = 0.5 * (K[0, 0] + K[1, 1])
         # Translational flow of a point is about f * parallax (small angles); half of it
-        # is a safe lower bound below which the parallax test cannot succeed.
+        # is a safe lower bound below which the parallax test cannot succeed (the lower
+        # of the two gates: whether the scene has relief is known only after the fit).
+        gate = cfg.bootstrap_min_parallax_deg
+        if cfg.bootstrap_relief_h_over_e > 0:
+            gate = min(gate, cfg.bootstrap_relief_parallax_deg)
         self.min_flow_px = float(getattr(
-            cfg, 'bootstrap_min_flow_px',
-            0.5 * f * math.tan(math.radians(cfg.bootstrap_min_parallax_deg))))
+            cfg, 'bootstrap_min_flow_px', 0.5 * f * math.tan(math.radians(gate))))
 
     # ------------------------------------------------------------------ public API
 
     def try_pair(self, ids_ref: np.ndarray, px_ref: np.ndarray, ids_cur: np.ndarray,
                  px_cur: np.ndarray, baseline: float | None = None,
-                 min_parallax_deg: float | None = None) -> BootstrapResult:
+                 min_parallax_deg: float | None = None,
+                 kept_share: float = 1.0) -> BootstrapResult:
         """Attempt a bootstrap from a reference and a current frame.
 
         Args:
@@ -261,7 +265,10 @@ class TwoViewBootstrap:
             ids_cur, px_cur: (M,) int64 track ids and (M, 2) IDEAL pixels, current.
             baseline: |t_cur_ref| to impose (map units); default bootstrap_baseline_m.
             min_parallax_deg: the median parallax the pair must reach; default
-                bootstrap_min_parallax_deg.
+                `parallax_gate`.
+            kept_share: the share of the reference's tracks the current frame kept
+                from the frame before; the next frame is expected to keep as many
+                (1: the tracks last, so a pair is never taken at the relief gate).
 
         Returns:
             BootstrapResult; `ok` False with a `reason` when the pair is refused.
@@ -306,7 +313,8 @@ class TwoViewBootstrap:
         h_over_e = self._homography_ratio(p_ref, p_cur, n_e)
         common = dict(n_common=n_common, median_flow_px=flow, h_over_e=h_over_e,
                       median_parallax_deg=med_par, n_inliers=n_valid, triangulation=tri)
-        min_par = float(cfg.bootstrap_min_parallax_deg if min_parallax_deg is None
+        lasting = n_valid * float(kept_share) >= cfg.bootstrap_min_inliers
+        min_par = float(self.parallax_gate(h_over_e, lasting) if min_parallax_deg is None
                         else min_parallax_deg)
         if h_over_e >= H_OVER_E_RATIO and med_par < min_par:
             return self._refuse(
@@ -314,8 +322,12 @@ class TwoViewBootstrap:
                 f'{100 * h_over_e:.0f}% of the essential inliers and the median parallax '
                 f'is {med_par:.2f} deg < {min_par:.2f} deg', **common)
         if med_par < min_par:
+            waiting = min_parallax_deg is None and \
+                med_par >= self.parallax_gate(h_over_e, lasting=False)
             return self._refuse(f'insufficient parallax: median {med_par:.2f} deg < '
-                                f'{min_par:.2f} deg', **common)
+                               f'{min_par:.2f} deg'
+                               + (' (waiting while the tracks last)' if waiting else ''),
+                               **common)
         if n_valid < int(cfg.bootstrap_min_inliers):
             return self._refuse(f'too few valid triangulated points ({n_valid} < '
                                 f'{cfg.bootstrap_min_inliers})', **common)
@@ -329,6 +341,25 @@ class TwoViewBootstrap:
             ok=True, reason='ok', R_cur_ref=R, t_cur_ref=t_s, T_cur_ref=_se3(R, t_s),
             point_ids=ids[valid], X_ref=X_ref, X_world=X_ref.copy(), inlier_ids=ids[inl],
             **common)
+
+    def parallax_gate(self, h_over_e: float, lasting: bool = True) -> float:
+        """The median parallax [deg] a pair must reach (docs/method.md §2.1).
+
+        Depth relief (the homography explains less than bootstrap_relief_h_over_e of
+        the essential matrix's inliers) makes the five-point pose unique and well
+        conditioned at less parallax: on a car at 10 Hz (H/E 0.25-0.6) one frame of
+        motion gives a pose within 0.3 deg and 1 deg of translation direction at 1-1.5
+        deg of median parallax. But a pair with more parallax gives a better first map
+        (KITTI 06, 8 seeds: 1-frame pairs 0.152 % ATE, 2-frame pairs 0.148 %; as JPEG,
+        at half size, flickering or backwards 10-40 % worse), so the lower gate is for
+        a pair whose tracks will not last (`lasting` False): a fast car keeps half its
+        tracks a frame and would never reach the full gate. Flat or far scenes and
+        rotations (H/E 0.55-1.2 in the rendered rooms) keep the full gate: there the
+        five-point solution may be the wrong one of the planar ambiguity."""
+        cfg = self.cfg
+        if h_over_e < cfg.bootstrap_relief_h_over_e and not lasting:
+            return float(cfg.bootstrap_relief_parallax_deg)
+        return float(cfg.bootstrap_min_parallax_deg)
 
     def _relative_pose(self, p_ref: np.ndarray, p_cur: np.ndarray, thr: float):
         """Step (b) of try_pair: (R, t (unit), inlier mask, essential inliers) of the pair,

@@ -33,6 +33,8 @@ class _Reference:
     ids: np.ndarray
     px_ideal: np.ndarray
     T_world_cam: np.ndarray | None  # known pose (ground-truth bootstrap) if given
+    #: tracks it shared with the last frame tried against it (its own count at first)
+    n_shared: int = 0
 
 
 class Initialisation:
@@ -64,7 +66,7 @@ class Initialisation:
         if ref is None or too_old or n_common < self.cfg.bootstrap_min_inliers:
             if len(tracks) >= self.cfg.bootstrap_min_inliers:
                 self._ref = _Reference(stamp_ns, self.frame_index, tracks.ids.copy(),
-                                       px.copy(), known_T)
+                                       px.copy(), known_T, len(tracks))
                 if chain is not None:
                     chain.new_reference(est)
                 res.message = 'bootstrap: new reference frame'
@@ -93,7 +95,8 @@ class Initialisation:
                 not chain.translating
             gate = self.cfg.orientation_only_bootstrap_parallax_deg if strict else None
             boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
-                                              baseline=baseline, min_parallax_deg=gate)
+                                              baseline=baseline, min_parallax_deg=gate,
+                                              kept_share=n_common / max(ref.n_shared, 1))
             if boot.ok and strict:
                 boot = self._against_chain(boot, est)
             if boot.ok:
@@ -101,6 +104,7 @@ class Initialisation:
                 T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
                 X_world = geo.transform_points(T_world_ref, boot.X_ref)
         timings['bootstrap'] = (time.perf_counter() - t) * 1e3
+        ref.n_shared = n_common
         if not boot.ok:
             res.message = f'bootstrap refused: {boot.reason}'
             self._orientation_only(res, est)
