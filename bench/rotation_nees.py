@@ -42,7 +42,8 @@ from .real_data import PRESETS
 
 #: rendered trajectories (ekf-vo-synth) and their length in frames (30 Hz): the ground
 #: robot's 760 frames are one loop of its rectangle, four turns in place
-SYNTHETIC = {'walk': 300, 'orbit': 300, 'ground_robot': 760, 'handheld_rotation': 300}
+SYNTHETIC = {'walk': 300, 'orbit': 300, 'ground_robot': 760, 'handheld_rotation': 300,
+             'drone_nadir': 300}
 SEQUENCES = ('kitti_raw', 'kitti_jpeg', 'dino', 'demo') + tuple(SYNTHETIC)
 REPO = Path(__file__).resolve().parents[1]
 #: first KITTI 06 frame whose ground-truth rotation is not the constant-rate segment

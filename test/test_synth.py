@@ -108,6 +108,16 @@ def test_handheld_rotation_mostly_rotates() -> None:
     assert st['speed_max'] < 0.15 and 80 < st['rot_max_deg_s'] < 120
 
 
+def test_drone_nadir_looks_down_at_the_floor_while_it_flies() -> None:
+    ts = np.arange(0.0, 20.0, 0.1)
+    Ts = np.stack([synth.trajectory_pose('drone_nadir', float(t), SEED) for t in ts])
+    # the optical axis (third column of R_world_cam) points down, within 10 deg
+    assert np.all(Ts[:, 2, 2] < -np.cos(np.radians(10.0)))
+    assert np.all((1.9 < Ts[:, 2, 3]) & (Ts[:, 2, 3] < 2.3))
+    st = synth.trajectory_stats('drone_nadir', 20.0, SEED)
+    assert 0.3 < st['speed_mean'] < 0.8 and st['rot_max_deg_s'] < 30
+
+
 def test_depth_matches_raycast(scene: synth.Scene) -> None:
     """The renderer's z-buffer equals exact ray/rectangle intersection (away from edges)."""
     cfg = _cfg()

@@ -254,6 +254,8 @@ TRAJECTORY_HELP = {
                          'a constant 0.5 m/s (turning while driving)',
     'handheld_rotation': 'hand-held at 1.5 m, mostly rotating: yaw +-30, pitch +-20, '
                          'roll +-15 deg at up to ~100 deg/s, a few cm of translation',
+    'drone_nadir': 'about 2.1 m up, looking straight down at the floor (a planar scene), '
+                   'flying a 2.8 m x 1.8 m figure of eight at up to ~0.5 m/s',
 }
 #: fewest frames of a usable bag (the bootstrap needs two views)
 MIN_FRAMES = 2

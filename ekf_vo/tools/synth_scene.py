@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 TRAJECTORIES = ('walk', 'orbit', 'figure8', 'ground_robot', 'ground_robot_arcs',
-                'handheld_rotation')
+                'handheld_rotation', 'drone_nadir')
 
 # Room: x in [-3.5, 3.5], y in [-2.75, 2.75], z in [0, 2.8] (metres, world frame, z up).
 ROOM_MIN = np.array([-3.5, -2.75, 0.0])
@@ -502,6 +502,9 @@ def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
     constant 0.5 m/s (57 deg/s in the arcs; period 18.3 s).
     handheld_rotation: a hand-held camera at 1.5 m that mostly rotates: yaw +-30 deg,
     pitch +-20 deg, roll +-15 deg at up to ~100 deg/s, with a few cm of translation.
+    drone_nadir: a camera 2.0-2.2 m up looking (nearly) straight down at the floor while
+    it flies a 2.8 m x 1.8 m figure of eight at up to ~0.5 m/s: the scene is a plane
+    (the floor, with a box now and then), the two-view geometry's hard case.
     """
     rng = np.random.default_rng([int(seed), 4242])
     ph = rng.uniform(0, 2 * np.pi, 12)
@@ -533,6 +536,13 @@ def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
         yaw = np.radians(30.0) * np.sin(w(2.0) * t + ph[3])
         pitch = 0.1 + np.radians(20.0) * np.sin(w(2.7) * t + ph[4])
         roll = np.radians(15.0) * np.sin(w(3.3) * t + ph[5])
+    elif name == 'drone_nadir':  # looking straight down at the floor: a planar scene
+        th = w(20.0) * t + ph[0]
+        x, y = 1.4 * np.sin(th), 0.9 * np.sin(2 * th)
+        z = 2.1 + 0.1 * np.sin(w(6.5) * t + ph[1])
+        yaw = ph[2] + 0.25 * np.sin(w(9.0) * t + ph[3])
+        pitch = np.pi / 2 - 0.08 + 0.06 * np.sin(w(5.0) * t + ph[4])
+        roll = 0.06 * np.sin(w(4.0) * t + ph[5])
     elif name == 'figure8':  # lemniscate, heading follows the path loosely
         th = w(16.0) * t + ph[0]
         x, y = 1.5 * np.sin(th), 1.0 * np.sin(2 * th)
