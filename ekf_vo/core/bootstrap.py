@@ -244,13 +244,17 @@ class TwoViewBootstrap:
         self.K = K
         f = 0.5 * (K[0, 0] + K[1, 1])
         # Translational flow of a point is about f * parallax (small angles); half of it
-        # is a safe lower bound below which the parallax test cannot succeed (the lower
-        # of the two gates: whether the scene has relief is known only after the fit).
-        gate = cfg.bootstrap_min_parallax_deg
-        if cfg.bootstrap_relief_h_over_e > 0:
-            gate = min(gate, cfg.bootstrap_relief_parallax_deg)
-        self.min_flow_px = float(getattr(
-            cfg, 'bootstrap_min_flow_px', 0.5 * f * math.tan(math.radians(gate))))
+        # is a cheap lower bound below which the parallax test is not tried. A pair
+        # whose tracks are going (kept_share < 1) may be judged by the relief gate, and
+        # whether its scene has relief is known only after the fit; a pair judged by
+        # the full gate after all meets the full gate's bound then.
+        def min_flow(gate_deg: float) -> float:
+            return float(getattr(cfg, 'bootstrap_min_flow_px',
+                                 0.5 * f * math.tan(math.radians(gate_deg))))
+        self.min_flow_px = min_flow(cfg.bootstrap_min_parallax_deg)
+        self._min_flow_relief_px = min_flow(min(cfg.bootstrap_min_parallax_deg,
+                                                cfg.bootstrap_relief_parallax_deg)) \
+            if cfg.bootstrap_relief_h_over_e > 0 else self.min_flow_px
 
     # ------------------------------------------------------------------ public API
 
@@ -284,9 +288,11 @@ class TwoViewBootstrap:
             return self._refuse(f'too few common tracks ({n_common} < {need})',
                                 n_common=n_common)
         flow = float(np.median(np.linalg.norm(p_cur - p_ref, axis=1)))
-        if flow < self.min_flow_px:
+        min_flow = self._min_flow_relief_px if kept_share < 1 and min_parallax_deg is None \
+            else self.min_flow_px
+        if flow < min_flow:
             return self._refuse(f'insufficient parallax: median flow {flow:.2f} px < '
-                                f'{self.min_flow_px:.2f} px', n_common=n_common,
+                                f'{min_flow:.2f} px', n_common=n_common,
                                 median_flow_px=flow)
 
         # (b) Essential matrix (Nister five-point + RANSAC) and relative pose.
@@ -316,6 +322,10 @@ class TwoViewBootstrap:
         lasting = n_valid * float(kept_share) >= cfg.bootstrap_min_inliers
         min_par = float(self.parallax_gate(h_over_e, lasting) if min_parallax_deg is None
                         else min_parallax_deg)
+        if flow < self.min_flow_px and min_par >= cfg.bootstrap_min_parallax_deg:
+            # judged by the full gate after all: the pre-check it would have failed
+            return self._refuse(f'insufficient parallax: median flow {flow:.2f} px < '
+                                f'{self.min_flow_px:.2f} px', **common)
         if h_over_e >= H_OVER_E_RATIO and med_par < min_par:
             return self._refuse(
                 f'pure rotation / insufficient parallax: the homography explains '
