@@ -89,14 +89,15 @@ class VoConfig(_Params):
         group='bootstrap')
     bootstrap_relief_h_over_e: float = param(
         0.5, 'A pair whose homography explains less than this share of the essential '
-        'matrix\'s inliers sees depth relief (a street, a room with furniture): its '
-        'relative pose is unique and well conditioned at less parallax, so it is judged '
-        'by bootstrap_relief_parallax_deg. Flat or far scenes and rotations (the '
-        'homography explains 0.55-1.2 of the inliers) keep bootstrap_min_parallax_deg. '
-        '0 disables.', '', 0.0, 1.0, group='bootstrap')
+        'matrix\'s inliers sees depth relief (a street): its relative pose is unique and '
+        'well conditioned at less parallax, so when its tracks will not last another '
+        'frame (a fast car) it is judged by bootstrap_relief_parallax_deg instead of '
+        'waiting for bootstrap_min_parallax_deg (docs/method.md §2.2.1). Flat or far '
+        'scenes and rotations (H/E 0.5-1.3) keep the full gate. 0 disables.', '', 0.0,
+        1.0, group='bootstrap')
     bootstrap_relief_parallax_deg: float = param(
-        1.0, 'Median parallax a pair with depth relief (bootstrap_relief_h_over_e) must '
-        'reach.', 'deg', 0.1, 45.0, group='bootstrap')
+        1.0, 'Median parallax a pair with depth relief (bootstrap_relief_h_over_e) whose '
+        'tracks will not last must reach.', 'deg', 0.1, 45.0, group='bootstrap')
     bootstrap_point_min_parallax_deg: float = param(
         1.0, 'A point of the first map (two-view or multi-view start) is kept only if its '
         'rays differ by this angle; the pair\'s pose comes from the same rays, so only the '

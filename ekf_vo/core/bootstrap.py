@@ -353,7 +353,7 @@ class TwoViewBootstrap:
             **common)
 
     def parallax_gate(self, h_over_e: float, lasting: bool = True) -> float:
-        """The median parallax [deg] a pair must reach (docs/method.md §2.1).
+        """The median parallax [deg] a pair must reach (docs/method.md §2.2.1).
 
         Depth relief (the homography explains less than bootstrap_relief_h_over_e of
         the essential matrix's inliers) makes the five-point pose unique and well
@@ -361,7 +361,7 @@ class TwoViewBootstrap:
         motion gives a pose within 0.3 deg and 1 deg of translation direction at 1-1.5
         deg of median parallax. But a pair with more parallax gives a better first map
         (KITTI 06, 8 seeds: 1-frame pairs 0.152 % ATE, 2-frame pairs 0.148 %; as JPEG,
-        at half size, flickering or backwards 10-40 % worse), so the lower gate is for
+        at half size, flickering or backwards 7-34 % worse), so the lower gate is for
         a pair whose tracks will not last (`lasting` False): a fast car keeps half its
         tracks a frame and would never reach the full gate. Flat or far scenes and
         rotations (H/E 0.55-1.2 in the rendered rooms) keep the full gate: there the
