@@ -103,6 +103,9 @@ class TrackerStats:
     n_border_rejected: int = 0
     n_predicted: int = 0
     n_prediction_retried: int = 0
+    #: median distance [px] between a predicted track's prediction and where KLT found
+    #: it, over the predicted tracks that converged from their prediction (0: none)
+    prediction_miss_px: float = 0.0
     rejected_frame: str = ''
 
 
@@ -338,6 +341,9 @@ class FeatureTracker:
         init, used = self._prior(predicted)
         stats.n_predicted = int(used.sum())
         p1, ok = self._lk(self._prev_gray, gray, p0, init)
+        if (ok & used).any():
+            stats.prediction_miss_px = float(np.median(np.linalg.norm(
+                (p1 - init)[ok & used], axis=1)))
         good = ok & self._fb_passes(gray, p0, p1, init)
         retry = used & ~good
         converged = ok.copy()
