@@ -335,22 +335,10 @@ class VisualOdometry(Initialisation):
         upd = self.ekf.last_update
         nis_per_dof = upd.nis / (2 * upd.n_used) if upd.n_used else 0.0
         res.nis_per_dof = nis_per_dof
-        found = n_found / n_in_view if n_in_view else 1.0
-        klt = self.tracker.stats
-        if klt.n_prediction_retried and klt.prediction_miss_px > 0.5 * c.klt_window_px \
-                and n_in_view >= 2 * c.min_tracking_inliers \
-                and found < c.health_min_found_share:
-            # the motion model's prediction failed for most tracks (features.py: the
-            # plain KLT retry ran; never on the sequences the benchmarks run), those it
-            # kept landed over half a KLT window from it (a prediction that was right
-            # but lost its tracks to the image, a flicker, misses by 2-7 px), and the
-            # map the prior puts in view is not there: a jolt the state cannot follow.
-            # Its few inliers would carry a wrong pose on (a KITTI car jolted 4.8 m
-            # drifted to 18 deg while DEGRADED, docs/method.md §15.10), so it is lost
+        lost_by_motion = self._motion_model_lost(n_found, n_in_view)
+        if lost_by_motion:
             self._failed_frames = c.max_failed_frames
-            res.message = (f'the motion model lost the camera: tracks '
-                           f'{klt.prediction_miss_px:.0f} px off their prediction, '
-                           f'{100 * found:.0f} % of the {n_in_view} map points in view found')
+            res.message = lost_by_motion
         elif res.n_inliers < c.min_tracking_inliers:
             self._failed_frames += 1
             res.message = f'only {res.n_inliers} inliers'
@@ -377,6 +365,22 @@ class VisualOdometry(Initialisation):
                 f'({res.n_inliers - res.n_rays} map points)')))
         res.variance_factor, res.found_share = report.variance_factor, report.found_share
         return False
+
+    def _motion_model_lost(self, n_found: float, n_in_view: int) -> str:
+        """Why this frame is a jolt the state cannot follow, or '' (docs/method.md
+        §7.5, §15.10): the plain KLT retry ran, the tracks kept landed over half a KLT
+        window from their prediction (a flicker's miss by 2-7 px), and the map in view
+        is not found. Its few inliers would carry a wrong pose on (18 deg, DEGRADED)."""
+        c = self.cfg
+        klt = self.tracker.stats
+        found = n_found / n_in_view if n_in_view else 1.0
+        if klt.n_prediction_retried and klt.prediction_miss_px > 0.5 * c.klt_window_px \
+                and n_in_view >= 2 * c.min_tracking_inliers \
+                and found < c.health_min_found_share:
+            return (f'the motion model lost the camera: tracks '
+                    f'{klt.prediction_miss_px:.0f} px off their prediction, '
+                    f'{100 * found:.0f} % of the {n_in_view} map points in view found')
+        return ''
 
     def _check_rotation(self) -> None:
         """A new keyframe: its rotation from the last one against the two-view geometry
