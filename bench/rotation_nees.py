@@ -61,7 +61,7 @@ def _folder_frames(name: str):
     data = load_folder(shared_data('kitti06_f0-50'))
     jpeg = name == 'kitti_jpeg'
     if name == 'kitti_2x':
-        data = _twice_as_fast(data)
+        data = _TwiceAsFast(data)
 
     def frames():
         for t, g in data.frames():
@@ -72,7 +72,7 @@ def _folder_frames(name: str):
     return data, frames(), {}
 
 
-class _twice_as_fast:
+class _TwiceAsFast:
     """KITTI 06 driven at twice its speed: every other frame, stamped at the camera's
     10 Hz (2.4 m a frame, a highway's speed), with its ground truth retimed alike."""
 

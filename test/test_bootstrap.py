@@ -258,7 +258,7 @@ def _kitti_first_poses(step: int):
     frames = list(data.frames())[::step]
     stream = VoStream(VoConfig(), seed=0)
     stream.set_camera(data.camera)
-    dt = frames[1][0] - frames[0][0] if step == 1 else (frames[1][0] - frames[0][0]) // step
+    dt = (frames[1][0] - frames[0][0]) // step             # the camera's own interval
     out = [stream.process(gray, frames[0][0] + k * dt) for k, (_, gray) in
            enumerate(frames[:20])]
     stream.vo.close()

@@ -253,8 +253,7 @@ class TwoViewBootstrap:
                                  0.5 * f * math.tan(math.radians(gate_deg))))
         self.min_flow_px = min_flow(cfg.bootstrap_min_parallax_deg)
         self._min_flow_relief_px = min_flow(min(cfg.bootstrap_min_parallax_deg,
-                                                cfg.bootstrap_relief_parallax_deg)) \
-            if cfg.bootstrap_relief_h_over_e > 0 else self.min_flow_px
+                                                self.parallax_gate(0.0, lasting=False)))
 
     # ------------------------------------------------------------------ public API
 

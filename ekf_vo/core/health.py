@@ -47,6 +47,12 @@ class HealthReport:
     found_share: float = 1.0     #: inliers / map points the prior puts in the image
 
 
+def found_share(n_found: float, n_in_view: int) -> float:
+    """The share of the map points the prior put in the image that the update used
+    (1 when it put none there)."""
+    return n_found / n_in_view if n_in_view else 1.0
+
+
 def chi2_upper(dof: float) -> float:
     """Chi-square 99.9 % quantile for `dof` degrees of freedom (Wilson-Hilferty)."""
     k = max(float(dof), 1.0)
@@ -82,7 +88,7 @@ class HealthMonitor:
         factor = total_nis / total_dof if total_dof else 1.0
         # inflate only when the innovations are beyond what chance explains
         inflation = factor if total_dof and total_nis > chi2_upper(total_dof) else 1.0
-        found = n_inliers / n_in_view if n_in_view else 1.0
+        found = found_share(n_inliers, n_in_view)
         reasons = []
         if inflation > c.health_max_variance_factor:
             reasons.append(f'innovations {factor:.1f}x their covariance over the last '

@@ -35,7 +35,7 @@ from .ekf import ANG, POS, VEL, CameraEKF, FilterError
 from .estimators import FrameMatches, make_estimator
 from .features import FeatureTracker, Tracks
 from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
-from .health import Health, HealthMonitor
+from .health import Health, HealthMonitor, found_share
 from .initialisation import Initialisation
 from .local_map import LocalMapper
 from .map import LandmarkMap
@@ -373,7 +373,7 @@ class VisualOdometry(Initialisation):
         is not found. Its few inliers would carry a wrong pose on (18 deg, DEGRADED)."""
         c = self.cfg
         klt = self.tracker.stats
-        found = n_found / n_in_view if n_in_view else 1.0
+        found = found_share(n_found, n_in_view)
         if klt.n_prediction_retried and klt.prediction_miss_px > 0.5 * c.klt_window_px \
                 and n_in_view >= 2 * c.min_tracking_inliers \
                 and found < c.health_min_found_share:
