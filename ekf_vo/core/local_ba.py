@@ -39,6 +39,7 @@ import numpy as np
 
 from . import geometry as geo
 from .observation import pinhole_project
+from .psd import inverse_information_3x3, psd_blocks_3x3
 
 #: added to each point's information block before inverting it (a point seen along one
 #: ray has a singular block; 1e-9 in units of 1/length^2 keeps the inverse finite)
@@ -238,7 +239,7 @@ class _Window:
         """Marginal covariances of each point (m,3,3) and each keyframe's (dtheta, dC)
         (k,6,6; zeros for the fixed ones) from one Schur complement (no damping), of the
         observations alone (the pose priors are this window's inputs, not its findings)."""
-        Hpp_inv = _inverse_3x3(ne.Hpp + np.eye(3) * _INFO_REGULARISER)
+        Hpp_inv = inverse_information_3x3(ne.Hpp, _INFO_REGULARISER)
         T_cov = np.zeros((len(self.slot), 6, 6))
         if self.nc == 0:
             return Hpp_inv, T_cov
@@ -248,7 +249,8 @@ class _Window:
         blocks = S_inv.reshape(len(self.free), 6, len(self.free), 6)
         T_cov[self.free] = blocks[np.arange(len(self.free)), :, np.arange(len(self.free)), :]
         # cov(X_i) = Hpp_i^-1 + Hpp_i^-1 Hpc_i S^-1 Hcp_i Hpp_i^-1, with W_i = Hcp_i Hpp_i^-1
-        return Hpp_inv + np.transpose(W, (0, 2, 1)) @ (S_inv @ W), T_cov
+        # rounding in a barely held gauge can leave S or a block not PSD (psd.py)
+        return psd_blocks_3x3(Hpp_inv + np.transpose(W, (0, 2, 1)) @ (S_inv @ W)), T_cov
 
 
 def _inverse_3x3(H: np.ndarray) -> np.ndarray:
@@ -335,4 +337,4 @@ def point_covariances(X_world: np.ndarray, T_cam_world_views: list[np.ndarray],
         R = T[:3, :3]
         J = pinhole_project(X @ R.T + T[:3, 3], K)[2] @ R / sigma_px
         H += np.transpose(J, (0, 2, 1)) @ J
-    return np.linalg.inv(H + np.eye(3) * _INFO_REGULARISER)
+    return inverse_information_3x3(H, _INFO_REGULARISER)

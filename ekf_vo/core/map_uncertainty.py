@@ -34,6 +34,7 @@ import numpy as np
 
 from . import geometry as geo
 from .observation import world_point_jacobian
+from .psd import nearest_psd
 
 #: regulariser of 3x3 point information blocks (one view or none: singular)
 _INFO_REGULARISER = 1e-9
@@ -207,6 +208,7 @@ class WorldCovariance:
                 a_c = np.concatenate((a_c, ray_anchors[1]))
             self.anchor_part = anchor_covariance(a_cov, a_c, T_world_cam[:3, 3])
             cov = inflation * (filter_cov + self.points_part) + self.anchor_part
+        cov = nearest_psd(cov)       # a barely held point must not make a variance negative
         if remember:
             self.last = (cov, T_world_cam[:3, 3].copy())
         return cov + self.evidence
