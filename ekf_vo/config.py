@@ -444,6 +444,15 @@ class VoConfig(_Params):
         16.27, 'A keyframe pair whose rotation NEES against the two-view covariance exceeds '
         'this (chi-square 3 dof, 99.9 %) adds its discrepancy to the published covariance '
         'and is DEGRADED.', '', 1.0, 1e6, group='quality')
+    rotation_drift_window: int = param(
+        10, 'The discrepancies of up to this many consecutive judged keyframe pairs are '
+        'summed and judged against their summed covariance, so that a steady drift whose '
+        'every pair is within rotation_check_max_nees is found (docs/method.md §15.11); '
+        '1: pairs are judged one by one only.', 'keyframe pairs', 1, 1000, group='quality')
+    rotation_drift_lost_deg: float = param(
+        5.0, 'A drift (rotation_drift_window) larger than this means the map no longer '
+        'holds the camera: tracking is lost and the map dropped, not relocalised in '
+        '(docs/method.md §15.11).', 'deg', 0.1, 180.0, group='quality')
     rotation_check_min_parallax_deg: float = param(
         1.0, 'Keyframe pairs with less median parallax are not judged (the essential '
         'matrix needs a baseline).', 'deg', 0.0, 90.0, group='quality')

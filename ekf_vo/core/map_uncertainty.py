@@ -144,6 +144,19 @@ class WorldCovariance:
         from now on the published covariance holds d d^T more."""
         self.evidence[3:, 3:] += np.outer(d_world, d_world)
 
+    def cover_rotation(self, d_world: np.ndarray) -> None:
+        """A rotation error of at least d (world rotation vector, a drift summed over
+        keyframe pairs): from now on the published covariance holds at least |d|^2 along
+        d, counting what it already holds there (the last published covariance and the
+        evidence), so that evidence found twice is not added twice."""
+        norm2 = float(d_world @ d_world)
+        if norm2 <= 0.0:
+            return
+        u = d_world / np.sqrt(norm2)
+        held = float(u @ (self.last[0][3:, 3:] + self.evidence[3:, 3:]) @ u)
+        if norm2 > held:
+            self.evidence[3:, 3:] += (norm2 - held) * np.outer(u, u)
+
     def carry(self, filter_cov: np.ndarray, r_now: np.ndarray) -> None:
         """A re-bootstrap at the filter's current pose (centre r_now, covariance
         filter_cov): the next map is anchored at the last published covariance carried
@@ -151,6 +164,10 @@ class WorldCovariance:
         carried = carry_pose_covariance(self.last[0][None] + self.evidence, self.last[1],
                                         r_now)[0]
         self._carried = (carried + filter_cov, np.asarray(r_now, float).copy())
+
+    def new_map(self) -> None:
+        """The map was dropped: its evidence went into the carried covariance (carry);
+        a relocalisation keeps the map, and with it the evidence."""
         self.evidence = np.zeros((6, 6))
 
     @property

@@ -46,7 +46,7 @@ from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigma
 from .orientation_only import OrientationChain
 from .refind import MapPointFinder
 from .relocalise import Relocaliser
-from .rotation_check import DeferredCheck
+from .rotation_check import KeyframeRotationJudge
 from .point_filter import PointFilter
 
 logger = logging.getLogger(__name__)
@@ -79,7 +79,9 @@ class VisualOdometry(Initialisation):
             else None
         self.growth = MapGrowth(cfg, camera)        # triangulation candidates (§7.3)
         self.health = HealthMonitor(cfg)            # online consistency checks (§15)
-        self._rotation_job = DeferredCheck()        # keyframes' rotation check (§15.2)
+        # keyframes' rotation check and drift (§15.2, §15.11)
+        self._rotation_job = KeyframeRotationJudge(
+            cfg.rotation_check_max_nees, cfg.rotation_drift_window, cfg.rotation_drift_lost_deg)
         # in-filter map refinement (docs/method.md §8); None = the hybrid default
         self.points: PointFilter | None = None
         if cfg.map_refinement == 'filter' and cfg.estimator != 'epnp':
@@ -114,6 +116,8 @@ class VisualOdometry(Initialisation):
         self._failed_frames = 0
         self.growth.reset()
         self.health.reset()
+        self._rotation_job.reset()
+        self.world_cov.new_map()
         self._filter_rejected: set[int] = set()   # left the point filter unconverged
         if self.points is not None:
             self.points.clear()
@@ -148,7 +152,7 @@ class VisualOdometry(Initialisation):
         relocalise_timeout_s; without a relocaliser or a described map, re-bootstrap."""
         self._take_check()
         if self.relocaliser is None or self.state != TrackingState.TRACKING or \
-                not len(self.map.described()[0]):
+                not len(self.map.described()[0]) or self._rotation_job.map_lost:
             self.reset(reason)
             return
         logger.info('VO lost: %s; relocalising', reason)
@@ -335,7 +339,8 @@ class VisualOdometry(Initialisation):
         upd = self.ekf.last_update
         nis_per_dof = upd.nis / (2 * upd.n_used) if upd.n_used else 0.0
         res.nis_per_dof = nis_per_dof
-        lost_by_motion = self._motion_model_lost(n_found, n_in_view)
+        lost_by_motion = self._rotation_job.map_lost or \
+            self._motion_model_lost(n_found, n_in_view)
         if lost_by_motion:
             self._failed_frames = c.max_failed_frames
             res.message = lost_by_motion
@@ -402,13 +407,10 @@ class VisualOdometry(Initialisation):
         informs: the next frame's verdict and published covariance, a reset, a loss."""
         if not self._rotation_job.pending:
             return
-        c = self.cfg
-        check = self._rotation_job.take()
-        self.last_rotation_check = check
-        if check is not None and check.nees > c.rotation_check_max_nees:
-            self.world_cov.add_rotation_evidence(check.discrepancy_world)
-            self.health.flag(f'rotation {check.angle_deg:.2f} deg off the two-view geometry '
-                             f'(NEES {check.nees:.0f})')
+        reason = self._rotation_job.take(self.world_cov)
+        self.last_rotation_check = self._rotation_job.last
+        if reason:
+            self.health.flag(reason)
 
     def _map_points_in_view(self) -> int:
         """Map points the prior puts inside the image (in front, within its bounds)."""

@@ -13,14 +13,22 @@ with the pixel noise estimated from the inliers' own Sampson errors.
     NEES = d^T Sigma_two-view^-1 d              (3 dof; 16.27 is the 99.9 % bound)
 
 Not judged (None): a pair whose rays barely differ (median parallax below
-`min_parallax_deg`), and a pair whose shared tracks a homography explains about as well
-as the essential matrix (a plane filling the view, or a rotation about the centre: there
-the essential matrix is ambiguous — two solutions fit a plane — and on the rendered room's
-walls it was degrees off while its covariance said hundredths). The model selection is
-the bootstrap's (bootstrap.py, after ORB-SLAM's): the homography's share of the inliers.
+`min_parallax_deg`). A pair whose shared tracks a homography explains about as well as
+the essential matrix (a plane filling the view, or a camera orbiting what it looks at;
+the model selection is the bootstrap's, after ORB-SLAM's: the homography's share of the
+inliers) is ambiguous: two solutions fit a plane, and on the rendered room's walls the
+essential matrix's was degrees off while its covariance said hundredths. Such a pair is
+judged against each candidate (the essential matrix's rotation and those of the
+homography's decompositions with the points in front) and the filter is given the one
+it is closest to: the least the evidence says (docs/method.md §15.11).
+
+The discrepancies of consecutive pairs add up (`RotationDrift`): a filter that is off
+by half a degree at every keyframe, each pair within its bound, is off by degrees after
+ten, and the sum is judged against the sum of the pairs' covariances.
 """
 from __future__ import annotations
 
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -38,11 +46,13 @@ MIN_POINTS = 20
 @dataclass(frozen=True)
 class RotationCheck:
     discrepancy_world: np.ndarray   #: (3,) filter minus two-view, world rotation vector
+    cov_world: np.ndarray           #: (3,3) its covariance (two views' and the filter's)
     nees: float                     #: against the two-view covariance (3 dof)
     angle_deg: float                #: |discrepancy|
     sigma_px: float                 #: pixel noise estimated from the inliers
     n_inliers: int
     parallax_deg: float             #: median angle between the inliers' rays
+    ambiguous: bool = False         #: a homography explained the tracks (candidates judged)
 
 
 def _sampson_px(E: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
@@ -58,6 +68,21 @@ def _sampson_px(E: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
     return np.abs(num) / np.sqrt(np.maximum(den, 1e-300))
 
 
+def _homography_rotations(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
+                          ) -> list[np.ndarray]:
+    """The rotations R_ba of the decompositions of H that keep the points in front of
+    both views (at most two: the planar ambiguity)."""
+    _, Rs, ts, normals = cv2.decomposeHomographyMat(H, K)
+    # the visibility test takes normalised image coordinates (the normals are in the
+    # camera frame), as float32 pairs
+    Ki = np.linalg.inv(K)
+    na = (pa @ Ki[:2, :2].T + Ki[:2, 2]).astype(np.float32).reshape(-1, 1, 2)
+    nb = (pb @ Ki[:2, :2].T + Ki[:2, 2]).astype(np.float32).reshape(-1, 1, 2)
+    keep = cv2.filterHomographyDecompByVisibleRefpoints(Rs, normals, na, nb)
+    rows = range(len(Rs)) if keep is None else np.asarray(keep).ravel().tolist()
+    return [np.asarray(Rs[k], float) for k in rows]
+
+
 def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
                    T_world_a: np.ndarray, ids_b: np.ndarray, px_b: np.ndarray,
                    T_world_b: np.ndarray, threshold_px: float, min_parallax_deg: float,
@@ -66,7 +91,12 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
     """Compare the filter's relative rotation of keyframes a and b (their poses) with
     the essential matrix of the IDEAL pixels of the tracks (ids) they share. None when
     there is not enough to judge. `filter_cov_rot`: the filter's 3x3 world rotation
-    covariance, taken for each keyframe's share of the relative error."""
+    covariance, taken for each keyframe's share of the relative error.
+
+    Where a homography explains the tracks about as well as the essential matrix, the
+    two-view rotation is ambiguous (module docstring): the filter is judged against the
+    candidate it is closest to, among the essential matrix's and the homography's
+    decompositions, so what is reported is the least the evidence says."""
     common, ia, ib = np.intersect1d(ids_a, ids_b, return_indices=True)
     if len(common) < MIN_POINTS:
         return None
@@ -91,10 +121,12 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
     if not parallax >= min_parallax_deg:
         return None
     n = int(np.count_nonzero(inl))
+    candidates = [R_ba]
     H, h_mask = cv2.findHomography(pa, pb, cv2.USAC_ACCURATE, threshold_px)
     if H is not None and h_mask is not None and \
             np.count_nonzero(h_mask) >= max_homography_share * n:
-        return None
+        h_in = h_mask.ravel() > 0
+        candidates += _homography_rotations(H, K, pa[h_in], pb[h_in])
     err = _sampson_px(E, K, pa[inl], pb[inl])
     # Sampson errors are the distance to the epipolar manifold: ~ sigma per pair;
     # corrected for the 5 parameters fitted
@@ -105,13 +137,18 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
         R_aw = T_world_a[:3, :3].T
         cov = cov + 2.0 * R_aw @ filter_cov_rot @ R_aw.T
     R_ab_filter = T_world_a[:3, :3].T @ T_world_b[:3, :3]
-    d_a = geo.quat_to_rotvec(geo.matrix_to_quat(R_ab_filter @ T_a_b[:3, :3].T))
-    try:
-        nees = float(d_a @ np.linalg.solve(cov, d_a))
-    except np.linalg.LinAlgError:
-        return None
-    return RotationCheck(T_world_a[:3, :3] @ d_a, nees,
-                         float(np.degrees(np.linalg.norm(d_a))), sigma, n, parallax)
+    judged = []
+    for R_c in candidates:
+        d = geo.quat_to_rotvec(geo.matrix_to_quat(R_ab_filter @ R_c))
+        try:
+            judged.append((float(d @ np.linalg.solve(cov, d)), d))
+        except np.linalg.LinAlgError:
+            return None
+    nees, d_a = min(judged, key=lambda nd: nd[0])
+    R_wa = T_world_a[:3, :3]
+    return RotationCheck(R_wa @ d_a, R_wa @ cov @ R_wa.T, nees,
+                         float(np.degrees(np.linalg.norm(d_a))), sigma, n, parallax,
+                         len(candidates) > 1)
 
 
 class DeferredCheck:
@@ -146,3 +183,74 @@ class DeferredCheck:
         if self._pool is not None:
             self._pool.shutdown(wait=False)
             self._pool = None
+
+
+class KeyframeRotationJudge:
+    """The keyframes' rotation check (in its worker, DeferredCheck) and what it
+    concludes. A pair beyond `max_nees` adds its discrepancy d d^T to the published
+    covariance (§15.2). The pairs' discrepancies are also summed over the trailing runs
+    of up to `drift_window` judged pairs of one map; the largest sum beyond `max_nees`
+    against the summed covariances is a drift, and the published covariance is made to
+    hold it. A drift beyond `lost_deg` means the map no longer holds the camera: it is
+    dropped, not relocalised in (docs/method.md §15.11)."""
+
+    def __init__(self, max_nees: float, drift_window: int, lost_deg: float) -> None:
+        self.max_nees = float(max_nees)
+        self.lost_rad = float(np.radians(lost_deg))
+        self._job = DeferredCheck()
+        self._pairs: deque = deque(maxlen=max(int(drift_window), 1))
+        self.last: RotationCheck | None = None     #: the last pair's check
+        #: why this map no longer holds the camera (a drift beyond lost_deg), or ''
+        self.map_lost = ''
+
+    def submit(self, *args: Any, **kwargs: Any) -> None:
+        self._job.submit(*args, **kwargs)
+
+    @property
+    def pending(self) -> bool:
+        return self._job.pending
+
+    def reset(self) -> None:
+        """A new map: its drift starts from nothing."""
+        self._pairs.clear()
+        self.map_lost = ''
+
+    def close(self) -> None:
+        self._job.close()
+
+    def take(self, world_cov) -> str:
+        """The submitted check's verdict, its evidence added to `world_cov`
+        (map_uncertainty.WorldCovariance); the reason to be DEGRADED, or ''."""
+        check = self.last = self._job.take()
+        if check is None:
+            return ''
+        reasons = []
+        if check.nees > self.max_nees:
+            world_cov.add_rotation_evidence(check.discrepancy_world)
+            reasons.append(f'rotation {check.angle_deg:.2f} deg off the two-view geometry '
+                           f'(NEES {check.nees:.0f})')
+        self._pairs.append((check.discrepancy_world, check.cov_world))
+        drift = self.drift()
+        if drift is not None:
+            d_sum, nees, n = drift
+            world_cov.cover_rotation(d_sum)
+            reasons.append(f'rotation drifting: {np.degrees(np.linalg.norm(d_sum)):.1f} deg '
+                           f'off the two-view geometry over {n} keyframe pairs '
+                           f'(NEES {nees:.0f})')
+            if np.linalg.norm(d_sum) > self.lost_rad:
+                self.map_lost = f'the map drifted: {reasons[-1]}'
+        return '; '.join(reasons)
+
+    def drift(self) -> tuple[np.ndarray, float, int] | None:
+        """(summed discrepancy, its NEES, pairs) of the largest trailing run of two or
+        more pairs whose sum is beyond max_nees; None when there is none."""
+        d_sum, cov_sum, best = np.zeros(3), np.zeros((3, 3)), None
+        for n, (d, cov) in enumerate(reversed(self._pairs), start=1):
+            d_sum, cov_sum = d_sum + d, cov_sum + cov
+            if n < 2:
+                continue
+            nees = float(d_sum @ np.linalg.solve(cov_sum, d_sum))
+            if nees > self.max_nees and (
+                    best is None or d_sum @ d_sum > best[0] @ best[0]):
+                best = (d_sum.copy(), nees, n)
+        return best
