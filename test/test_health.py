@@ -10,7 +10,8 @@ import pytest
 from ekf_vo.config import VoConfig
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.health import Health, HealthMonitor, chi2_upper
-from ekf_vo.core.rotation_check import check_rotation
+from ekf_vo.core.map_uncertainty import WorldCovariance
+from ekf_vo.core.rotation_check import KeyframeRotationJudge, RotationCheck, check_rotation
 
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
 
@@ -102,8 +103,74 @@ def test_a_filter_rotation_off_by_half_a_degree_is_caught_and_measured():
     assert np.all(np.abs(d[:2]) < 0.25)
 
 
-def test_a_plane_or_a_rotation_without_baseline_is_not_judged():
-    ids, za, Ta, zb, Tb = _two_keyframes(np.random.default_rng(4), planar=True)
-    assert check_rotation(K, ids, za, Ta, ids, zb, Tb, 1.0, 1.0, 0.7) is None
+def test_a_rotation_without_baseline_is_judged_by_its_homography():
+    """Without a baseline the essential matrix is undetermined, but the homography of a
+    rotation is exact: a right filter passes, one 1 deg off is caught."""
     ids, za, Ta, zb, Tb = _two_keyframes(np.random.default_rng(5), baseline=(0.001, 0, 0))
+    chk = check_rotation(K, ids, za, Ta, ids, zb, Tb, 1.0, 1.0, 0.7)
+    assert chk is not None and chk.ambiguous and chk.nees < 16.27
+    err = np.radians(1.0) * np.array([0.0, 1.0, 0.0])
+    Tb_filter = geo.make_T(geo.rotvecs_to_matrices(err[None])[0] @ Tb[:3, :3], Tb[:3, 3])
+    chk = check_rotation(K, ids, za, Ta, ids, zb, Tb_filter, 1.0, 1.0, 0.7)
+    assert chk is not None and chk.nees > 16.27 and 0.9 < chk.angle_deg < 1.1
+
+
+def test_few_shared_tracks_are_not_judged():
+    ids, za, Ta, zb, Tb = _two_keyframes(np.random.default_rng(5), n=15)
     assert check_rotation(K, ids, za, Ta, ids, zb, Tb, 1.0, 1.0, 0.7) is None
+
+
+@pytest.mark.parametrize('seed', [4, 6, 7])
+def test_a_plane_is_judged_against_its_candidates(seed):
+    """On a plane the two-view rotation is ambiguous: the filter is judged against the
+    candidate it is closest to. A right filter passes; one 2 deg off is caught, and the
+    discrepancy reported is at most its error (the least the evidence says)."""
+    ids, za, Ta, zb, Tb = _two_keyframes(np.random.default_rng(seed), planar=True)
+    chk = check_rotation(K, ids, za, Ta, ids, zb, Tb, 1.0, 1.0, 0.7)
+    assert chk is not None and chk.ambiguous and chk.nees < 16.27
+    err = np.radians(2.0) * np.array([0.0, 0.0, 1.0])
+    Tb_filter = geo.make_T(geo.rotvecs_to_matrices(err[None])[0] @ Tb[:3, :3], Tb[:3, 3])
+    chk = check_rotation(K, ids, za, Ta, ids, zb, Tb_filter, 1.0, 1.0, 0.7)
+    assert chk is not None and chk.nees > 100
+    assert 1.0 < chk.angle_deg < 2.1
+
+
+def _pair(d_deg, sigma_deg=0.3):
+    """A judged keyframe pair whose discrepancy is d_deg about the world z axis."""
+    d = np.radians(d_deg) * np.array([0.0, 0.0, 1.0])
+    cov = np.radians(sigma_deg) ** 2 * np.eye(3)
+    return RotationCheck(d, cov, float(d @ np.linalg.solve(cov, d)), d_deg, 0.3, 100, 3.0)
+
+
+def test_a_steady_drift_within_each_pairs_bound_is_found_and_covered():
+    """0.6 deg a pair at 0.3 deg sigma: each pair's NEES is 4 (passes), but the sum of
+    n pairs has NEES 4n; past 16.27 it is a drift, and the published covariance is made
+    to hold the summed discrepancy."""
+    judge = KeyframeRotationJudge(16.27, drift_window=10, lost_deg=5.0)
+    world = WorldCovariance(True, K, 1.0)
+    reasons = [judge.judge(_pair(0.6), world) for _ in range(5)]
+    assert reasons[:4] == ['', '', '', ''] and 'drifting: 3.0 deg' in reasons[4]
+    held = world.evidence[5, 5]
+    assert held == pytest.approx(np.radians(3.0) ** 2, rel=1e-6)
+    assert not judge.map_lost
+    # the next pair: the sum grows to 3.6 deg, and only the difference is added
+    judge.judge(_pair(0.6), world)
+    assert world.evidence[5, 5] == pytest.approx(np.radians(3.6) ** 2, rel=1e-6)
+
+
+def test_pairs_that_scatter_around_the_filter_are_not_a_drift():
+    judge = KeyframeRotationJudge(16.27, drift_window=10, lost_deg=5.0)
+    world = WorldCovariance(True, K, 1.0)
+    rng = np.random.default_rng(0)
+    reasons = [judge.judge(_pair(float(rng.normal(0.0, 0.3))), world) for _ in range(30)]
+    assert not any(reasons) and not world.evidence.any()
+
+
+def test_a_drift_beyond_lost_deg_loses_the_map_until_the_next_one():
+    judge = KeyframeRotationJudge(16.27, drift_window=10, lost_deg=5.0)
+    world = WorldCovariance(True, K, 1.0)
+    for _ in range(6):
+        judge.judge(_pair(1.0), world)
+    assert judge.map_lost.startswith('the map drifted: rotation drifting: 6.0 deg')
+    judge.reset()
+    assert judge.map_lost == ''

@@ -38,9 +38,13 @@ import numpy as np
 
 from . import geometry as geo
 from .map_uncertainty import relative_pose_covariance
+from .orientation_only import fit_rotation
 
 #: fewest shared inlier tracks for a verdict
 MIN_POINTS = 20
+#: share of the shared tracks one rotation must explain for a pair to be judged as a
+#: rotation without a baseline (a translation with depth in view leaves more unexplained)
+_PURE_ROTATION_SHARE = 0.9
 
 
 @dataclass(frozen=True)
@@ -68,19 +72,82 @@ def _sampson_px(E: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
     return np.abs(num) / np.sqrt(np.maximum(den, 1e-300))
 
 
-def _homography_rotations(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
-                          ) -> list[np.ndarray]:
-    """The rotations R_ba of the decompositions of H that keep the points in front of
-    both views (at most two: the planar ambiguity)."""
+def _homography_candidates(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray,
+                           sigma_px: float, min_parallax_deg: float
+                           ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(R_ba, 3x3 rotation covariance in frame a) of each decomposition of H that keeps
+    the points in front of both views (at most two: the planar ambiguity) and whose
+    plane is seen with min_parallax_deg of median parallax. The covariance is the
+    two-view one of that decomposition's own geometry (the plane's points at unit
+    distance), plus the rays' bound on a rotation."""
     _, Rs, ts, normals = cv2.decomposeHomographyMat(H, K)
     # the visibility test takes normalised image coordinates (the normals are in the
     # camera frame), as float32 pairs
     Ki = np.linalg.inv(K)
-    na = (pa @ Ki[:2, :2].T + Ki[:2, 2]).astype(np.float32).reshape(-1, 1, 2)
-    nb = (pb @ Ki[:2, :2].T + Ki[:2, 2]).astype(np.float32).reshape(-1, 1, 2)
-    keep = cv2.filterHomographyDecompByVisibleRefpoints(Rs, normals, na, nb)
+    na = pa @ Ki[:2, :2].T + Ki[:2, 2]
+    nb = pb @ Ki[:2, :2].T + Ki[:2, 2]
+    keep = cv2.filterHomographyDecompByVisibleRefpoints(
+        Rs, normals, na.astype(np.float32).reshape(-1, 1, 2),
+        nb.astype(np.float32).reshape(-1, 1, 2))
     rows = range(len(Rs)) if keep is None else np.asarray(keep).ravel().tolist()
-    return [np.asarray(Rs[k], float) for k in rows]
+    rays_cov = _bearing_rotation_covariance(K, pa, sigma_px)
+    m_a = np.column_stack((na, np.ones(len(na))))
+    out = []
+    for k in rows:
+        R_ba, t_ba, n = np.asarray(Rs[k], float), np.asarray(ts[k], float).ravel(), \
+            np.asarray(normals[k], float).ravel()
+        depth = m_a @ n
+        front = depth > 1e-9
+        if np.count_nonzero(front) < MIN_POINTS:
+            continue
+        X_a = m_a[front] / depth[front, None]                      # on the plane n.X = 1
+        T_a_b = geo.make_T(R_ba.T, -R_ba.T @ t_ba)
+        if _median_parallax_deg(X_a, T_a_b[:3, 3]) < min_parallax_deg:
+            continue                  # no baseline: a rotation, judged by _pure_rotation
+        out.append((R_ba, rays_cov + relative_pose_covariance(
+            K, np.eye(4), T_a_b, X_a, sigma_px)[3:, 3:]))
+    return out
+
+
+def _median_parallax_deg(X_a: np.ndarray, centre_b_in_a: np.ndarray) -> float:
+    """Median angle [deg] between the rays from view a and from view b (its centre in
+    a's frame) to the points X_a (n,3)."""
+    ray_a = X_a / np.linalg.norm(X_a, axis=1, keepdims=True)
+    ray_b = X_a - centre_b_in_a
+    ray_b /= np.linalg.norm(ray_b, axis=1, keepdims=True)
+    return float(np.degrees(np.median(np.arccos(np.clip(
+        np.sum(ray_a * ray_b, axis=1), -1, 1)))))
+
+
+def _pure_rotation(K: np.ndarray, pa: np.ndarray, pb: np.ndarray, sigma_px: float,
+                   threshold_px: float, seed: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(R_ba, 3x3 covariance) when one rotation explains all but a few of the rays
+    within threshold_px (orientation_only.fit_rotation): a rotation without a baseline,
+    which a homography fits but the essential matrix cannot. Its covariance is the fit's
+    plus the rotation a translation under the threshold can pass for."""
+    f = 0.5 * float(K[0, 0] + K[1, 1])
+    Ki = np.linalg.inv(K)
+    rays = [np.column_stack((p @ Ki[:2, :2].T + Ki[:2, 2], np.ones(len(p)))) for p in (pa, pb)]
+    b_a, b_b = (r / np.linalg.norm(r, axis=1, keepdims=True) for r in rays)
+    fit = fit_rotation(b_a, b_b, np.sqrt(2.0) * sigma_px / f, threshold_px / f,
+                       np.random.default_rng(seed))
+    if fit is None or fit.inlier_share < _PURE_ROTATION_SHARE:
+        return None
+    # fit.cov_cur is in frame b; as a rotation vector of R_ab it is seen from a
+    R_ab = fit.R_cur_ref.T
+    cov_a = R_ab @ fit.cov_cur @ R_ab.T + (threshold_px / f) ** 2 * np.eye(3)
+    return fit.R_cur_ref, cov_a
+
+
+def _bearing_rotation_covariance(K: np.ndarray, px: np.ndarray, sigma_px: float
+                                 ) -> np.ndarray:
+    """3x3 covariance of a rotation fitted to the rays of pixels px seen in two views
+    with pixel noise sigma_px each: (sigma^2 / f^2) 2 (sum_i (I - c_i c_i^T))^-1."""
+    c = np.column_stack(((px - K[:2, 2]) / np.diag(K)[:2], np.ones(len(px))))
+    c /= np.linalg.norm(c, axis=1, keepdims=True)
+    info = len(c) * np.eye(3) - c.T @ c
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    return 2.0 * (sigma_px / f) ** 2 * np.linalg.pinv(info)
 
 
 def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
@@ -113,42 +180,51 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
         return None
     X_a = (X_h[:3] / X_h[3]).T[inl]                   # points in frame a, |t| = 1
     T_a_b = geo.make_T(R_ba.T, (-R_ba.T @ t_ba).ravel())
-    ray_a = X_a / np.linalg.norm(X_a, axis=1, keepdims=True)
-    ray_b = X_a - T_a_b[:3, 3]
-    ray_b /= np.linalg.norm(ray_b, axis=1, keepdims=True)
-    parallax = float(np.degrees(np.median(np.arccos(np.clip(
-        np.sum(ray_a * ray_b, axis=1), -1, 1)))))
-    if not parallax >= min_parallax_deg:
-        return None
+    parallax = _median_parallax_deg(X_a, T_a_b[:3, 3])
     n = int(np.count_nonzero(inl))
-    candidates = [R_ba]
     H, h_mask = cv2.findHomography(pa, pb, cv2.USAC_ACCURATE, threshold_px)
-    if H is not None and h_mask is not None and \
-            np.count_nonzero(h_mask) >= max_homography_share * n:
-        h_in = h_mask.ravel() > 0
-        candidates += _homography_rotations(H, K, pa[h_in], pb[h_in])
+    ambiguous = H is not None and h_mask is not None and \
+        np.count_nonzero(h_mask) >= max_homography_share * n
+    # the essential matrix's rotation needs a baseline; a homography's, from a plane
+    # seen with parallax or from a pure rotation, is judged whatever E's parallax says
+    if not ambiguous and not parallax >= min_parallax_deg:
+        return None
     err = _sampson_px(E, K, pa[inl], pb[inl])
     # Sampson errors are the distance to the epipolar manifold: ~ sigma per pair;
     # corrected for the 5 parameters fitted
     sigma = float(np.sqrt(np.mean(err ** 2) * n / max(n - 5, 1)))
     sigma = max(sigma, 1e-3)
-    cov = relative_pose_covariance(K, np.eye(4), T_a_b, X_a, sigma)[3:, 3:]
+    candidates = []
+    if parallax >= min_parallax_deg:
+        candidates.append((R_ba, relative_pose_covariance(K, np.eye(4), T_a_b, X_a,
+                                                          sigma)[3:, 3:]))
+    if ambiguous:
+        h_in = h_mask.ravel() > 0
+        candidates += _homography_candidates(H, K, pa[h_in], pb[h_in], sigma,
+                                             min_parallax_deg)
+        rotation = _pure_rotation(K, pa, pb, sigma, threshold_px, seed)
+        if rotation is not None:
+            candidates.append(rotation)
+    filter_part = np.zeros((3, 3))
     if filter_cov_rot is not None:
         R_aw = T_world_a[:3, :3].T
-        cov = cov + 2.0 * R_aw @ filter_cov_rot @ R_aw.T
+        filter_part = 2.0 * R_aw @ filter_cov_rot @ R_aw.T
     R_ab_filter = T_world_a[:3, :3].T @ T_world_b[:3, :3]
     judged = []
-    for R_c in candidates:
+    for R_c, cov_c in candidates:
         d = geo.quat_to_rotvec(geo.matrix_to_quat(R_ab_filter @ R_c))
+        cov = cov_c + filter_part
         try:
-            judged.append((float(d @ np.linalg.solve(cov, d)), d))
+            judged.append((float(d @ np.linalg.solve(cov, d)), d, cov))
         except np.linalg.LinAlgError:
-            return None
-    nees, d_a = min(judged, key=lambda nd: nd[0])
+            continue
+    if not judged:
+        return None
+    nees, d_a, cov = min(judged, key=lambda ndc: ndc[0])
     R_wa = T_world_a[:3, :3]
     return RotationCheck(R_wa @ d_a, R_wa @ cov @ R_wa.T, nees,
                          float(np.degrees(np.linalg.norm(d_a))), sigma, n, parallax,
-                         len(candidates) > 1)
+                         ambiguous)
 
 
 class DeferredCheck:
@@ -219,9 +295,14 @@ class KeyframeRotationJudge:
         self._job.close()
 
     def take(self, world_cov) -> str:
-        """The submitted check's verdict, its evidence added to `world_cov`
-        (map_uncertainty.WorldCovariance); the reason to be DEGRADED, or ''."""
-        check = self.last = self._job.take()
+        """The submitted check's verdict (judge)."""
+        return self.judge(self._job.take(), world_cov)
+
+    def judge(self, check: RotationCheck | None, world_cov) -> str:
+        """One keyframe pair's check: its evidence, and the drift's, added to
+        `world_cov` (map_uncertainty.WorldCovariance); the reason to be DEGRADED, or
+        ''."""
+        self.last = check
         if check is None:
             return ''
         reasons = []
