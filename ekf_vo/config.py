@@ -450,9 +450,11 @@ class VoConfig(_Params):
         'every pair is within rotation_check_max_nees is found (docs/method.md §15.11); '
         '1: pairs are judged one by one only.', 'keyframe pairs', 1, 1000, group='quality')
     rotation_drift_lost_deg: float = param(
-        5.0, 'A drift (rotation_drift_window) larger than this means the map no longer '
+        0.0, 'A drift (rotation_drift_window) larger than this means the map no longer '
         'holds the camera: tracking is lost and the map dropped, not relocalised in '
-        '(docs/method.md §15.11).', 'deg', 0.1, 180.0, group='quality')
+        '(docs/method.md §15.11). 0: never (the default: on the Middlebury dino the '
+        'two-view geometry itself is degrees off, and the map was dropped 5-7 times).',
+        'deg', 0.0, 180.0, group='quality')
     rotation_check_min_parallax_deg: float = param(
         1.0, 'Keyframe pairs with less median parallax are not judged (the essential '
         'matrix needs a baseline).', 'deg', 0.0, 90.0, group='quality')

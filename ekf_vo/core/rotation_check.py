@@ -267,8 +267,8 @@ class KeyframeRotationJudge:
     covariance (§15.2). The pairs' discrepancies are also summed over the trailing runs
     of up to `drift_window` judged pairs of one map; the largest sum beyond `max_nees`
     against the summed covariances is a drift, and the published covariance is made to
-    hold it. A drift beyond `lost_deg` means the map no longer holds the camera: it is
-    dropped, not relocalised in (docs/method.md §15.11)."""
+    hold it. A drift beyond `lost_deg` (0: never) means the map no longer holds the
+    camera: it is dropped, not relocalised in (docs/method.md §15.11)."""
 
     def __init__(self, max_nees: float, drift_window: int, lost_deg: float) -> None:
         self.max_nees = float(max_nees)
@@ -318,7 +318,7 @@ class KeyframeRotationJudge:
             reasons.append(f'rotation drifting: {np.degrees(np.linalg.norm(d_sum)):.1f} deg '
                            f'off the two-view geometry over {n} keyframe pairs '
                            f'(NEES {nees:.0f})')
-            if np.linalg.norm(d_sum) > self.lost_rad:
+            if 0.0 < self.lost_rad < np.linalg.norm(d_sum):
                 self.map_lost = f'the map drifted: {reasons[-1]}'
         return '; '.join(reasons)
 
