@@ -265,7 +265,8 @@ class KeyframeRotationJudge:
     """The keyframes' rotation check (in its worker, DeferredCheck) and what it
     concludes. A pair beyond `max_nees` adds its discrepancy d d^T to the published
     covariance (§15.2). The pairs' discrepancies are also summed over the trailing runs
-    of up to `drift_window` judged pairs of one map; the largest sum beyond `max_nees`
+    of up to `drift_window` judged pairs of one map, and over all of them since the map
+    began; the largest sum beyond `max_nees`
     against the summed covariances is a drift, and the published covariance is made to
     hold it. A drift beyond `lost_deg` (0: never) means the map no longer holds the
     camera: it is dropped, not relocalised in (docs/method.md §15.11)."""
@@ -275,6 +276,8 @@ class KeyframeRotationJudge:
         self.lost_rad = float(np.radians(lost_deg))
         self._job = DeferredCheck()
         self._pairs: deque = deque(maxlen=max(int(drift_window), 1))
+        #: every judged pair of this map: (summed discrepancy, summed covariance, pairs)
+        self._total = (np.zeros(3), np.zeros((3, 3)), 0)
         self.last: RotationCheck | None = None     #: the last pair's check
         #: why this map no longer holds the camera (a drift beyond lost_deg), or ''
         self.map_lost = ''
@@ -289,6 +292,7 @@ class KeyframeRotationJudge:
     def reset(self) -> None:
         """A new map: its drift starts from nothing."""
         self._pairs.clear()
+        self._total = (np.zeros(3), np.zeros((3, 3)), 0)
         self.map_lost = ''
 
     def close(self) -> None:
@@ -311,6 +315,8 @@ class KeyframeRotationJudge:
             reasons.append(f'rotation {check.angle_deg:.2f} deg off the two-view geometry '
                            f'(NEES {check.nees:.0f})')
         self._pairs.append((check.discrepancy_world, check.cov_world))
+        d_all, cov_all, n_all = self._total
+        self._total = (d_all + check.discrepancy_world, cov_all + check.cov_world, n_all + 1)
         drift = self.drift()
         if drift is not None:
             d_sum, nees, n = drift
@@ -323,11 +329,15 @@ class KeyframeRotationJudge:
         return '; '.join(reasons)
 
     def drift(self) -> tuple[np.ndarray, float, int] | None:
-        """(summed discrepancy, its NEES, pairs) of the largest trailing run of two or
-        more pairs whose sum is beyond max_nees; None when there is none."""
-        d_sum, cov_sum, best = np.zeros(3), np.zeros((3, 3)), None
+        """(summed discrepancy, its NEES, pairs) of the largest run of two or more pairs
+        whose sum is beyond max_nees, among the trailing runs within the window and the
+        run of every pair since the map began; None when there is none."""
+        runs, d_sum, cov_sum = [self._total], np.zeros(3), np.zeros((3, 3))
         for n, (d, cov) in enumerate(reversed(self._pairs), start=1):
             d_sum, cov_sum = d_sum + d, cov_sum + cov
+            runs.append((d_sum, cov_sum, n))
+        best = None
+        for d_sum, cov_sum, n in runs:
             if n < 2:
                 continue
             nees = float(d_sum @ np.linalg.solve(cov_sum, d_sum))
