@@ -15,8 +15,11 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   unlike the rest of the sequence), which the images contradict (docs/method.md §14.4).
 - ``dino``: Middlebury dino, ground-truth bootstrap (the paper's protocol).
 - ``demo``: bags/demo (rendered, 640x480, 30 Hz).
-- ``walk`` / ``orbit`` / ``ground_robot`` / ``handheld_rotation``: rendered sequences
-  (ekf-vo-synth; the frames of SYNTHETIC), one per seed.
+- ``walk`` / ``orbit`` / ``ground_robot`` / ``handheld_rotation`` / ``drone_nadir``:
+  rendered sequences (ekf-vo-synth; the frames of SYNTHETIC), one per seed. With a
+  suffix ``_x2`` or ``_x3`` (``orbit_x3``): the camera moving two or three times as fast
+  (every second or third frame, stamped 1/30 s apart), as a 15 or 10 Hz camera sees the
+  same motion (docs/method.md §15.11).
 
     python -m bench.rotation_nees [--sequences ...] [--seeds 0 1 2] [--set NAME=VALUE ...]
                                   [--json OUT]
@@ -112,10 +115,24 @@ def _run_stream(camera: dict, frames, overrides: dict, seed: int):
             np.array(located, bool))
 
 
-def _synthetic(trajectory: str, seed: int, overrides: dict):
+def _synthetic_name(name: str) -> tuple[str, int] | None:
+    """(trajectory, speed-up) of a rendered sequence's name ('orbit', 'orbit_x3'), or
+    None for a real one."""
+    trajectory, _, factor = name.partition('_x')
+    if name in SYNTHETIC:
+        return name, 1
+    if trajectory in SYNTHETIC and factor in ('2', '3'):
+        return trajectory, int(factor)
+    return None
+
+
+def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1):
     from ekf_vo.tools.synth import SynthConfig, render_sequence
     scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory)
     seq = list(render_sequence(scfg))
+    if speedup > 1:            # every k-th frame, at the renderer's frame interval
+        dt = seq[1][0] - seq[0][0]
+        seq = [(seq[0][0] + k * dt, im, T) for k, (_, im, T) in enumerate(seq[::speedup])]
     camera = {'width': scfg.width, 'height': scfg.height, 'K': scfg.K(), 'D': scfg.D(),
               'distortion_model': 'plumb_bob'}
     gt_s = np.array([s for s, _, _ in seq]) * 1e-9
@@ -128,8 +145,8 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
     """One sequence (and seed): tracking figures and the rotation NEES."""
     start = 0.0
     base = name.removesuffix('_from12')
-    if base in SYNTHETIC:
-        gt_s, gt_T, out = _synthetic(base, seed, overrides)
+    if _synthetic_name(base) is not None:
+        gt_s, gt_T, out = _synthetic(*_synthetic_name(base), seed, overrides)
     elif base == 'demo':
         from ekf_vo.io.bag import read_ground_truth
         s = run_bag(REPO / 'bags' / 'demo', overrides=overrides, seed=seed)
@@ -185,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f'bench.rotation_nees: {exc}', file=sys.stderr)
         return 2
-    missing = [s for s in args.sequences if s.removesuffix('_from12') not in SEQUENCES]
+    missing = [s for s in args.sequences if s.removesuffix('_from12') not in SEQUENCES
+               and _synthetic_name(s) is None]
     if missing:
         print(f'bench.rotation_nees: unknown sequence {missing[0]}', file=sys.stderr)
         return 2
@@ -195,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
           'max rot err deg | NEES mean | median | % > 16.27 |')
     print('|---|---|---|---|---|---|---|---|---|---|')
     for name in args.sequences:
-        real = name not in SYNTHETIC
+        real = _synthetic_name(name) is None
         for seed in (args.seeds[:1] if real else args.seeds):
             if real and name != 'demo' and shared_data(
                     'middlebury_dino' if name == 'dino' else 'kitti06_f0-50') is None:
