@@ -146,7 +146,8 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
     start = 0.0
     base = name.removesuffix('_from12')
     if _synthetic_name(base) is not None:
-        gt_s, gt_T, out = _synthetic(*_synthetic_name(base), seed, overrides)
+        trajectory, speedup = _synthetic_name(base)
+        gt_s, gt_T, out = _synthetic(trajectory, seed, overrides, speedup)
     elif base == 'demo':
         from ekf_vo.io.bag import read_ground_truth
         s = run_bag(REPO / 'bags' / 'demo', overrides=overrides, seed=seed)
