@@ -45,6 +45,9 @@ MIN_POINTS = 20
 #: share of the shared tracks one rotation must explain for a pair to be judged as a
 #: rotation without a baseline (a translation with depth in view leaves more unexplained)
 _PURE_ROTATION_SHARE = 0.9
+#: a homography decomposition whose plane normal is within this of the last ambiguous
+#: pair's is that plane seen again (the filter's orientation carries it to the world)
+NORMAL_CONTINUITY_DEG = 15.0
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,8 @@ class RotationCheck:
     n_inliers: int
     parallax_deg: float             #: median angle between the inliers' rays
     ambiguous: bool = False         #: a homography explained the tracks (candidates judged)
+    #: the unit normal (world) of the plane the judged candidate sees, None: no plane
+    plane_normal_world: np.ndarray | None = None
 
 
 def _sampson_px(E: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
@@ -74,8 +79,9 @@ def _sampson_px(E: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
 
 def _homography_candidates(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray,
                            sigma_px: float, min_parallax_deg: float
-                           ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(R_ba, 3x3 rotation covariance in frame a) of each decomposition of H that keeps
+                           ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(R_ba, 3x3 rotation covariance in frame a, unit plane normal in frame a) of each
+    decomposition of H that keeps
     the points in front of both views (at most two: the planar ambiguity) and whose
     plane is seen with min_parallax_deg of median parallax. The covariance is the
     two-view one of that decomposition's own geometry (the plane's points at unit
@@ -105,7 +111,7 @@ def _homography_candidates(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.
         if _median_parallax_deg(X_a, T_a_b[:3, 3]) < min_parallax_deg:
             continue                  # no baseline: a rotation, judged by _pure_rotation
         out.append((R_ba, rays_cov + relative_pose_covariance(
-            K, np.eye(4), T_a_b, X_a, sigma_px)[3:, 3:]))
+            K, np.eye(4), T_a_b, X_a, sigma_px)[3:, 3:], n / np.linalg.norm(n)))
     return out
 
 
@@ -154,7 +160,8 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
                    T_world_a: np.ndarray, ids_b: np.ndarray, px_b: np.ndarray,
                    T_world_b: np.ndarray, threshold_px: float, min_parallax_deg: float,
                    max_homography_share: float, filter_cov_rot: np.ndarray | None = None,
-                   seed: int = 0) -> RotationCheck | None:
+                   seed: int = 0, plane_normal_world: np.ndarray | None = None
+                   ) -> RotationCheck | None:
     """Compare the filter's relative rotation of keyframes a and b (their poses) with
     the essential matrix of the IDEAL pixels of the tracks (ids) they share. None when
     there is not enough to judge. `filter_cov_rot`: the filter's 3x3 world rotation
@@ -163,7 +170,10 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
     Where a homography explains the tracks about as well as the essential matrix, the
     two-view rotation is ambiguous (module docstring): the filter is judged against the
     candidate it is closest to, among the essential matrix's and the homography's
-    decompositions, so what is reported is the least the evidence says."""
+    decompositions, so what is reported is the least the evidence says. Unless the
+    plane is the one the last ambiguous pair chose (`plane_normal_world`, within
+    NORMAL_CONTINUITY_DEG): a camera does not change the plane it sees from one keyframe
+    to the next, while the wrong solution's normal turns with the baseline."""
     common, ia, ib = np.intersect1d(ids_a, ids_b, return_indices=True)
     if len(common) < MIN_POINTS:
         return None
@@ -194,37 +204,55 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
     # corrected for the 5 parameters fitted
     sigma = float(np.sqrt(np.mean(err ** 2) * n / max(n - 5, 1)))
     sigma = max(sigma, 1e-3)
-    candidates = []
+    R_wa = T_world_a[:3, :3]
+    candidates = []                        # (R_ba, covariance in a, world plane normal)
     if parallax >= min_parallax_deg:
         candidates.append((R_ba, relative_pose_covariance(K, np.eye(4), T_a_b, X_a,
-                                                          sigma)[3:, 3:]))
+                                                          sigma)[3:, 3:], None))
     if ambiguous:
         h_in = h_mask.ravel() > 0
-        candidates += _homography_candidates(H, K, pa[h_in], pb[h_in], sigma,
-                                             min_parallax_deg)
-        rotation = _pure_rotation(K, pa, pb, sigma, threshold_px, seed)
-        if rotation is not None:
-            candidates.append(rotation)
+        planes = [(R, cov, R_wa @ n) for R, cov, n in _homography_candidates(
+            H, K, pa[h_in], pb[h_in], sigma, min_parallax_deg)]
+        # |cos| of each plane's angle to the last pair's plane
+        cos = [0.0 if plane_normal_world is None else abs(float(c[2] @ plane_normal_world))
+               for c in planes]
+        same = [c for c, k in zip(planes, cos) if k > np.cos(np.radians(NORMAL_CONTINUITY_DEG))]
+        if len(same) == 1 and min(cos) < np.cos(np.radians(3 * NORMAL_CONTINUITY_DEG)):
+            candidates = same
+        else:
+            candidates += planes
+            rotation = _pure_rotation(K, pa, pb, sigma, threshold_px, seed)
+            if rotation is not None:
+                candidates.append((*rotation, None))
     filter_part = np.zeros((3, 3))
     if filter_cov_rot is not None:
-        R_aw = T_world_a[:3, :3].T
-        filter_part = 2.0 * R_aw @ filter_cov_rot @ R_aw.T
-    R_ab_filter = T_world_a[:3, :3].T @ T_world_b[:3, :3]
+        filter_part = 2.0 * R_wa.T @ filter_cov_rot @ R_wa
+    return _closest(candidates, T_world_a[:3, :3].T @ T_world_b[:3, :3], filter_part,
+                    R_wa, (sigma, n, parallax, ambiguous))
+
+
+def _closest(candidates: list, R_ab_filter: np.ndarray, filter_part: np.ndarray,
+             R_wa: np.ndarray, stats: tuple) -> RotationCheck | None:
+    """The check against the candidate (R_ba, covariance in a, world normal) the
+    filter's R_ab is closest to (smallest NEES). Its plane normal is the candidate's,
+    or, for the essential matrix's, that of the plane candidate it agrees with."""
     judged = []
-    for R_c, cov_c in candidates:
+    for R_c, cov_c, normal in candidates:
         d = geo.quat_to_rotvec(geo.matrix_to_quat(R_ab_filter @ R_c))
         cov = cov_c + filter_part
         try:
-            judged.append((float(d @ np.linalg.solve(cov, d)), d, cov))
+            judged.append((float(d @ np.linalg.solve(cov, d)), d, cov, R_c, normal))
         except np.linalg.LinAlgError:
             continue
     if not judged:
         return None
-    nees, d_a, cov = min(judged, key=lambda ndc: ndc[0])
-    R_wa = T_world_a[:3, :3]
+    nees, d_a, cov, R_c, normal = min(judged, key=lambda j: j[0])
+    if normal is None:
+        twins = [c[2] for c in candidates if c[2] is not None and geo.rotation_angle_deg(
+            c[0], R_c) < NORMAL_CONTINUITY_DEG / 10]
+        normal = twins[0] if twins else None
     return RotationCheck(R_wa @ d_a, R_wa @ cov @ R_wa.T, nees,
-                         float(np.degrees(np.linalg.norm(d_a))), sigma, n, parallax,
-                         ambiguous)
+                         float(np.degrees(np.linalg.norm(d_a))), *stats, normal)
 
 
 class DeferredCheck:
@@ -278,12 +306,15 @@ class KeyframeRotationJudge:
         self._pairs: deque = deque(maxlen=max(int(drift_window), 1))
         #: every judged pair of this map: (summed discrepancy, summed covariance, pairs)
         self._total = (np.zeros(3), np.zeros((3, 3)), 0)
+        self._normal: np.ndarray | None = None  #: the last judged pair's plane (world)
         self.last: RotationCheck | None = None     #: the last pair's check
         #: why this map no longer holds the camera (a drift beyond lost_deg), or ''
         self.map_lost = ''
 
     def submit(self, *args: Any, **kwargs: Any) -> None:
-        self._job.submit(*args, **kwargs)
+        """check_rotation(*args, **kwargs) in the worker, with the plane of the last
+        ambiguous pair."""
+        self._job.submit(*args, plane_normal_world=self._normal, **kwargs)
 
     @property
     def pending(self) -> bool:
@@ -293,6 +324,7 @@ class KeyframeRotationJudge:
         """A new map: its drift starts from nothing."""
         self._pairs.clear()
         self._total = (np.zeros(3), np.zeros((3, 3)), 0)
+        self._normal = None
         self.map_lost = ''
 
     def close(self) -> None:
@@ -309,6 +341,8 @@ class KeyframeRotationJudge:
         self.last = check
         if check is None:
             return ''
+        if check.plane_normal_world is not None:
+            self._normal = check.plane_normal_world
         reasons = []
         if check.nees > self.max_nees:
             world_cov.add_rotation_evidence(check.discrepancy_world)
