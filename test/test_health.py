@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -174,3 +175,25 @@ def test_a_drift_beyond_lost_deg_loses_the_map_until_the_next_one():
     assert judge.map_lost.startswith('the map drifted: rotation drifting: 6.0 deg')
     judge.reset()
     assert judge.map_lost == ''
+
+
+def test_the_plane_seen_before_tells_the_twins_apart():
+    """A filter that follows the wrong twin of the planar ambiguity is closest to that
+    twin, and passes; given the plane the last pair saw, the check judges it against the
+    right decomposition and catches it."""
+    # moving forward and sideways towards a wall: both decompositions see the points in
+    # front; the wrong one's normal is 50 deg from the wall's
+    ids, za, Ta, zb, Tb = _two_keyframes(np.random.default_rng(4), planar=True,
+                                         baseline=(0.5, 0.0, 0.45))
+    H, _ = cv2.findHomography(za, zb, cv2.USAC_ACCURATE, 1.0)
+    _, Rs, _, _ = cv2.decomposeHomographyMat(H, K)
+    R_ba_true = Tb[:3, :3].T
+    twin = max(Rs, key=lambda R: geo.rotation_angle_deg(R, R_ba_true))
+    assert geo.rotation_angle_deg(twin, R_ba_true) > 2.0
+    Tb_filter = geo.make_T(twin.T, Tb[:3, 3])
+    blind = check_rotation(K, ids, za, Ta, ids, zb, Tb_filter, 1.0, 1.0, 0.7)
+    assert blind is not None and blind.nees < 16.27
+    seen = check_rotation(K, ids, za, Ta, ids, zb, Tb_filter, 1.0, 1.0, 0.7,
+                          plane_normal_world=np.array([0.0, 0.0, 1.0]))
+    assert seen is not None and seen.nees > 100
+    assert seen.angle_deg == pytest.approx(geo.rotation_angle_deg(twin, R_ba_true), abs=0.2)
