@@ -360,18 +360,41 @@ class KeyframeRotationJudge:
                            f'(NEES {nees:.0f})')
             if 0.0 < self.lost_rad < np.linalg.norm(d_sum):
                 self.map_lost = f'the map drifted: {reasons[-1]}'
+        world_cov.cover_rotation(self.unexplained())
         return '; '.join(reasons)
+
+    def _runs(self) -> list[tuple[np.ndarray, np.ndarray, int]]:
+        """(summed discrepancy, summed covariance, pairs): first the run since the map
+        began, then the trailing runs of two or more pairs within the window."""
+        runs, d_sum, cov_sum = [self._total], np.zeros(3), np.zeros((3, 3))
+        for n, (d, cov) in enumerate(reversed(self._pairs), start=1):
+            d_sum, cov_sum = d_sum + d, cov_sum + cov
+            if n >= 2:
+                runs.append((d_sum, cov_sum, n))
+        return runs
+
+    def unexplained(self) -> np.ndarray:
+        """The largest drift the noise of the window's runs does not explain, significant
+        or not (the run since the map began is left out: its noise grows without bound,
+        and so would the share of it taken for a drift). Under
+        a drift e, E|d|^2 = |e|^2 + trace S, so |d|^2 - trace S estimates |e|^2 (a world
+        rotation vector along d; zeros when no run has any)."""
+        best, best_excess = np.zeros(3), 0.0
+        for d_sum, cov_sum, _ in self._runs()[1:]:      # the window's runs
+            norm2 = float(d_sum @ d_sum)
+            if norm2 <= 0.0:
+                continue
+            excess = norm2 - float(np.trace(cov_sum))
+            if excess > best_excess:
+                best, best_excess = d_sum * np.sqrt(excess / norm2), excess
+        return best
 
     def drift(self) -> tuple[np.ndarray, float, int] | None:
         """(summed discrepancy, its NEES, pairs) of the largest run of two or more pairs
         whose sum is beyond max_nees, among the trailing runs within the window and the
         run of every pair since the map began; None when there is none."""
-        runs, d_sum, cov_sum = [self._total], np.zeros(3), np.zeros((3, 3))
-        for n, (d, cov) in enumerate(reversed(self._pairs), start=1):
-            d_sum, cov_sum = d_sum + d, cov_sum + cov
-            runs.append((d_sum, cov_sum, n))
         best = None
-        for d_sum, cov_sum, n in runs:
+        for d_sum, cov_sum, n in self._runs():
             if n < 2:
                 continue
             nees = float(d_sum @ np.linalg.solve(cov_sum, d_sum))
