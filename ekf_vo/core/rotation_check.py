@@ -22,9 +22,9 @@ judged against each candidate (the essential matrix's rotation and those of the
 homography's decompositions with the points in front) and the filter is given the one
 it is closest to: the least the evidence says (docs/method.md §15.11).
 
-The discrepancies of consecutive pairs add up (`RotationDrift`): a filter that is off
-by half a degree at every keyframe, each pair within its bound, is off by degrees after
-ten, and the sum is judged against the sum of the pairs' covariances.
+The discrepancies of consecutive pairs add up (`KeyframeRotationJudge`): a filter that
+is off by half a degree at every keyframe, each pair within its bound, is off by degrees
+after ten, and the sum is judged against the sum of the pairs' covariances.
 """
 from __future__ import annotations
 
@@ -77,27 +77,29 @@ def _sampson_px(E: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
     return np.abs(num) / np.sqrt(np.maximum(den, 1e-300))
 
 
+def _normalised(K: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Rays (n,3) of IDEAL pixels px (n,2) on the normalised image plane (z = 1)."""
+    Ki = np.linalg.inv(K)
+    return np.column_stack((px @ Ki[:2, :2].T + Ki[:2, 2], np.ones(len(px))))
+
+
 def _homography_candidates(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray,
                            sigma_px: float, min_parallax_deg: float
                            ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """(R_ba, 3x3 rotation covariance in frame a, unit plane normal in frame a) of each
-    decomposition of H that keeps
-    the points in front of both views (at most two: the planar ambiguity) and whose
-    plane is seen with min_parallax_deg of median parallax. The covariance is the
+    decomposition of H that keeps the points in front of both views (at most two: the
+    planar ambiguity) and whose plane is seen with min_parallax_deg of median parallax. The covariance is the
     two-view one of that decomposition's own geometry (the plane's points at unit
     distance), plus the rays' bound on a rotation."""
     _, Rs, ts, normals = cv2.decomposeHomographyMat(H, K)
     # the visibility test takes normalised image coordinates (the normals are in the
     # camera frame), as float32 pairs
-    Ki = np.linalg.inv(K)
-    na = pa @ Ki[:2, :2].T + Ki[:2, 2]
-    nb = pb @ Ki[:2, :2].T + Ki[:2, 2]
+    m_a, m_b = _normalised(K, pa), _normalised(K, pb)
     keep = cv2.filterHomographyDecompByVisibleRefpoints(
-        Rs, normals, na.astype(np.float32).reshape(-1, 1, 2),
-        nb.astype(np.float32).reshape(-1, 1, 2))
+        Rs, normals, m_a[:, :2].astype(np.float32).reshape(-1, 1, 2),
+        m_b[:, :2].astype(np.float32).reshape(-1, 1, 2))
     rows = range(len(Rs)) if keep is None else np.asarray(keep).ravel().tolist()
     rays_cov = _bearing_rotation_covariance(K, pa, sigma_px)
-    m_a = np.column_stack((na, np.ones(len(na))))
     out = []
     for k in rows:
         R_ba, t_ba, n = np.asarray(Rs[k], float), np.asarray(ts[k], float).ravel(), \
@@ -132,9 +134,8 @@ def _pure_rotation(K: np.ndarray, pa: np.ndarray, pb: np.ndarray, sigma_px: floa
     which a homography fits but the essential matrix cannot. Its covariance is the fit's
     plus the rotation a translation under the threshold can pass for."""
     f = 0.5 * float(K[0, 0] + K[1, 1])
-    Ki = np.linalg.inv(K)
-    rays = [np.column_stack((p @ Ki[:2, :2].T + Ki[:2, 2], np.ones(len(p)))) for p in (pa, pb)]
-    b_a, b_b = (r / np.linalg.norm(r, axis=1, keepdims=True) for r in rays)
+    b_a, b_b = (r / np.linalg.norm(r, axis=1, keepdims=True)
+                for r in (_normalised(K, pa), _normalised(K, pb)))
     fit = fit_rotation(b_a, b_b, np.sqrt(2.0) * sigma_px / f, threshold_px / f,
                        np.random.default_rng(seed))
     if fit is None or fit.inlier_share < _PURE_ROTATION_SHARE:
@@ -149,7 +150,7 @@ def _bearing_rotation_covariance(K: np.ndarray, px: np.ndarray, sigma_px: float
                                  ) -> np.ndarray:
     """3x3 covariance of a rotation fitted to the rays of pixels px seen in two views
     with pixel noise sigma_px each: (sigma^2 / f^2) 2 (sum_i (I - c_i c_i^T))^-1."""
-    c = np.column_stack(((px - K[:2, 2]) / np.diag(K)[:2], np.ones(len(px))))
+    c = _normalised(K, px)
     c /= np.linalg.norm(c, axis=1, keepdims=True)
     info = len(c) * np.eye(3) - c.T @ c
     f = 0.5 * (K[0, 0] + K[1, 1])
