@@ -234,3 +234,45 @@ def test_a_car_that_stands_then_drives_publishes_its_orientation_then_its_map():
     def length(p):
         return float(np.sum(np.linalg.norm(np.diff(np.array(p), axis=0), axis=1)))
     assert abs(length(moving) / length(plain) - 1.0) < 0.1
+
+
+def test_a_frame_the_reference_does_not_explain_is_carried_on_from_the_last_one():
+    """The reference fit fails (the camera has translated past near points since it),
+    but the step from the last frame with an orientation is a rotation: carried()
+    gives that orientation, uncertain by a second translation prior, for publishing
+    only; the chain itself keeps no orientation for the frame."""
+    from ekf_vo.core.orientation_only import OrientationChain
+    rng = np.random.default_rng(5)
+    chain = OrientationChain(CAMERA, 1.0, 3.0, 0.5, rng)
+    ids = np.arange(300)
+    n = len(ids)
+    px_ref = rng.uniform((20, 20), (620, 460), (n, 2))
+    z = np.where(np.arange(n) < 0.4 * n, 1.0, 10.0)     # a near and a far group
+    X = np.column_stack(((px_ref - K[:2, 2]) / K[0, 0], np.ones(n))) * z[:, None]
+
+    def seen(R_cur_ref, t_cur_ref):
+        Xc = X @ R_cur_ref.T + t_cur_ref
+        return Xc[:, :2] / Xc[:, 2:] * K[0, 0] + K[:2, 2] + rng.normal(0, 0.3, (n, 2))
+
+    R_mid = geo.quat_to_matrix(geo.rotvec_to_quat(np.radians([0.0, 3.0, 0.0])))
+    R_end = geo.quat_to_matrix(geo.rotvec_to_quat(np.radians([0.0, 3.5, 0.5])))
+    chain.new_reference(chain.track(0, ids, px_ref))
+    # the groups' flows differ by 450 px a metre sideways: 4.5 px at 10 mm, which one
+    # rotation explains within 3 px; 7.2 px at 16 mm, which none does; 2.7 px for the
+    # step between the two
+    mid = chain.track(33_000_000, ids, seen(R_mid, np.array([0.010, 0.0, 0.0])))
+    assert mid is not None
+    end = chain.track(66_000_000, ids, seen(R_end, np.array([0.016, 0.0, 0.0])))
+    assert end is None and not chain.translating
+    carried = chain.carried()
+    assert carried is not None and carried.stamp_ns == 66_000_000
+    assert _angle_deg(carried.R_world_cam @ R_end) < 1.0      # R_world_cur = R_cur_ref^T
+    d = geo.quat_to_rotvec(geo.matrix_to_quat(R_end.T @ carried.R_world_cam.T))
+    assert d @ np.linalg.solve(carried.cov_world, d) < 16.27      # within its covariance
+    # the second prior: at least twice the translation prior's variance on each axis
+    # (the last frame's own, and the step's)
+    assert np.all(np.linalg.eigvalsh(carried.cov_world) >= chain.model_sigma_rad ** 2)
+    assert chain.reference is not None and chain.previous is not None
+    # nothing to carry when the reference explains the frame
+    again = chain.track(99_000_000, ids, seen(R_mid, np.array([0.010, 0.0, 0.0])))
+    assert again is not None and chain.carried() is None

@@ -92,11 +92,16 @@ class Initialisation:
             # agrees with it; a camera that translates is the essential matrix's case
             # (docs/method.md §15.9)
             strict = chain is not None and self._orientation_published and \
-                not chain.translating
+                not chain.translating and not chain.translation_seen
             gate = self.cfg.orientation_only_bootstrap_parallax_deg if strict else None
             boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
                                               baseline=baseline, min_parallax_deg=gate,
                                               kept_share=n_common / max(ref.n_shared, 1))
+            if chain is not None:
+                # a pair's parallax means something only with its points triangulated
+                # (an arbitrary essential matrix gives 15-40 deg with few of them)
+                sound = boot.n_inliers >= self.cfg.bootstrap_min_inliers
+                chain.judge_pair(est, boot.median_parallax_deg if sound else float('nan'))
             if boot.ok and strict:
                 boot = self._against_chain(boot, est)
             if boot.ok:
@@ -145,6 +150,15 @@ class Initialisation:
         docs/method.md §15.9), once the bootstrap has waited orientation_only_after_s:
         the position is the attach point's, unknown (unknown_position_sigma)."""
         chain = self.orientation
+        if chain is not None and chain.translation_seen:
+            # the chain's rotation is (partly) a translation: nothing to publish until
+            # the map (docs/method.md §15.9)
+            return
+        if est is None and chain is not None and self._orientation_published:
+            # a frame whose fit against the reference failed, in a run that already
+            # publishes its orientation (a hand-held camera's few centimetres): carried
+            # on from the last frame with an orientation when that step is a rotation
+            est = chain.carried()
         if est is None or chain is None or \
                 (est.stamp_ns - chain.started_ns) * 1e-9 < self.cfg.orientation_only_after_s:
             return
@@ -219,7 +233,8 @@ class Initialisation:
         translation prior the two cannot be told apart, and the bootstrap is the better
         model once there is parallax (measured: §15.9)."""
         found = self._chain_disagreement(boot, est)
-        if found is None:
+        if found is None or self.orientation.translation_seen:
+            # a chain seen to absorb a translation measured no rotation to judge by
             return
         d, C = found
         R = res.T_world_cam[:3, :3]

@@ -52,6 +52,20 @@ MIN_INLIER_SHARE = 0.7
 MIN_INLIERS = 20
 #: below this many tracks shared with the reference, the last frame with an orientation is fitted
 _HANDOVER_TRACKS = 2 * MIN_INLIERS
+#: a translation across the view at depth d passes for a rotation of about t/d, and gives
+#: the bootstrap pair a parallax of about t/d: a pair whose median parallax is within
+#: this ratio of the chain's rotation since the reference shows that rotation to be a
+#: translation. Under a turn the pair's parallax is noise, far below the rotation
+#: (measured on the rendered hand-held camera, 8 seeds: 0.00-0.1 of it), or, on the few
+#: pairs whose essential matrix is arbitrary, far above it (2-5x)
+TRANSLATION_PARALLAX_RATIO = (0.5, 1.5)
+#: ... and at least this parallax [deg]: below it the pair's parallax is noise
+TRANSLATION_MIN_PARALLAX_DEG = 0.5
+#: a camera whose frames no rotation from the reference explains for this long [s]
+#: translates (a robot that drives off forward: its flow is no rotation, and its
+#: parallax is not one either). A turn's failures at the image's edge are brief:
+#: at most 0.1 s on the rendered hand-held camera (8 seeds)
+TRANSLATION_FAILED_FOR_S = 0.3
 
 
 def kabsch(b_from: np.ndarray, b_to: np.ndarray) -> np.ndarray:
@@ -153,7 +167,13 @@ class OrientationChain:
         self._last_good: _Frame | None = None      # the last frame with an orientation
         self.translating = False       #: the last frame tracked moved by more than a turn
         self.started_ns: int | None = None
+        self._carry_from: _Frame | None = None
         self.n_references = 0          #: references taken after the first
+        #: a bootstrap pair has shown the chain's rotation to be a translation (sticky
+        #: until the next restart: a camera seen to translate is not turning in place)
+        self.translation_seen = False
+        #: stamp of the first of the frames just tracked that no fit explained
+        self.failing_since_ns: int | None = None
 
     def track(self, stamp_ns: int, ids: np.ndarray, px_ideal: np.ndarray
               ) -> Orientation | None:
@@ -173,6 +193,10 @@ class OrientationChain:
                     np.count_nonzero(np.isin(ids, base.ids)) < _HANDOVER_TRACKS:
                 base = self._last_good
             est = None if base is None else self._chain(base, ids, b, stamp_ns)
+            # what carried() may try: the step from the last frame with an orientation,
+            # when that is not the fit that just failed
+            self._carry_from = self._last_good if est is None and base is self._ref \
+                and self._last_good is not None and self._last_good is not base else None
         # translating: not even the step from the previous frame is a rotation (a car's
         # near points); a fit against the reference can also fail on a few tracks at the
         # image's edge while the camera turns, and then the step is one
@@ -180,6 +204,11 @@ class OrientationChain:
             self._prev is None or self._fit(self._prev, ids, b) is None)
         self.previous = None if self._prev is None else self._prev.est
         self._prev = _Frame(ids, b, est)
+        self._prev_stamp_ns = int(stamp_ns)
+        if est is not None:
+            self.failing_since_ns = None
+        elif self.failing_since_ns is None:
+            self.failing_since_ns = int(stamp_ns)
         if est is not None:
             self._last_good = self._prev
         return est
@@ -200,6 +229,43 @@ class OrientationChain:
         # the fit's error, a rotation vector in the current frame, seen from the world
         noise = R @ fit.cov_cur @ R.T
         return Orientation(R, base.est.cov_world + noise, noise, int(stamp_ns))
+
+    def judge_pair(self, est: Orientation | None, parallax_deg: float) -> bool:
+        """Whether the bootstrap pair of the reference and the frame of `est` (its median
+        parallax, deg) shows the chain's rotation between them to be a translation
+        passing for one (TRANSLATION_PARALLAX_RATIO): a camera that stood still, then
+        walked or flew over a floor; or no fit has explained the frames for
+        TRANSLATION_FAILED_FOR_S (a robot that drove off). Remembered in
+        translation_seen."""
+        if est is None and self.failing_since_ns is not None and self._prev is not None \
+                and (self._prev_stamp_ns - self.failing_since_ns) * 1e-9 >= \
+                TRANSLATION_FAILED_FOR_S:
+            self.translation_seen = True
+            return True
+        ref = self.reference
+        if est is None or ref is None or not parallax_deg >= TRANSLATION_MIN_PARALLAX_DEG:
+            return False
+        R = est.R_world_cam.T @ ref.R_world_cam
+        turn = np.degrees(np.linalg.norm(geo.quat_to_rotvec(geo.matrix_to_quat(R))))
+        lo, hi = TRANSLATION_PARALLAX_RATIO
+        if lo * turn <= parallax_deg <= hi * turn:
+            self.translation_seen = True
+            return True
+        return False
+
+    def carried(self) -> Orientation | None:
+        """For publishing only: the orientation of the frame just tracked when its fit
+        against the reference failed, from the step since the last frame that has one
+        (a rotation fit of its own, a second translation prior in its covariance); None
+        when that step is no rotation either. The chain itself does not use it: the
+        failed fit stays its evidence of a translation (docs/method.md §15.9)."""
+        base, cur = self._carry_from, self._prev
+        if base is None or cur is None:
+            return None
+        est = self._chain(base, cur.ids, cur.b, self._prev_stamp_ns)
+        if est is not None:
+            est.cov_world = est.cov_world + self.model_sigma_rad ** 2 * np.eye(3)
+        return est
 
     def new_reference(self, est: Orientation | None) -> None:
         """The bootstrap took the last tracked frame as its reference: later frames are
