@@ -19,7 +19,9 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   rendered sequences (ekf-vo-synth; the frames of SYNTHETIC), one per seed. With a
   suffix ``_x2`` or ``_x3`` (``orbit_x3``): the camera moving two or three times as fast
   (every second or third frame, stamped 1/30 s apart), as a 15 or 10 Hz camera sees the
-  same motion (docs/method.md §15.11).
+  same motion (docs/method.md §15.11). With ``_still`` (``walk_still``): the camera
+  stands for 1 s before it moves (its first view 30 times, with fresh sensor noise), as
+  a robot waits when the node starts (§15.12).
 
     python -m bench.rotation_nees [--sequences ...] [--seeds 0 1 2] [--set NAME=VALUE ...]
                                   [--json OUT]
@@ -115,24 +117,40 @@ def _run_stream(camera: dict, frames, overrides: dict, seed: int):
             np.array(located, bool))
 
 
-def _synthetic_name(name: str) -> tuple[str, int] | None:
-    """(trajectory, speed-up) of a rendered sequence's name ('orbit', 'orbit_x3'), or
-    None for a real one."""
+#: frames the camera of a ``_still`` sequence stands before it moves (1 s at 30 Hz)
+STILL_FRAMES = 30
+#: the standing camera's fresh sensor noise [grey levels]
+STILL_NOISE = 2.0
+
+
+def _synthetic_name(name: str) -> tuple[str, int, int] | None:
+    """(trajectory, speed-up, frames standing first) of a rendered sequence's name
+    ('orbit', 'orbit_x3', 'walk_still'), or None for a real one."""
+    still = STILL_FRAMES if name.endswith('_still') else 0
+    name = name.removesuffix('_still')
     trajectory, _, factor = name.partition('_x')
     if name in SYNTHETIC:
-        return name, 1
+        return name, 1, still
     if trajectory in SYNTHETIC and factor in ('2', '3'):
-        return trajectory, int(factor)
+        return trajectory, int(factor), still
     return None
 
 
-def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1):
+def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
+               still: int = 0):
     from ekf_vo.tools.synth import SynthConfig, render_sequence
     scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory)
     seq = list(render_sequence(scfg))
+    dt = seq[1][0] - seq[0][0]
     if speedup > 1:            # every k-th frame, at the renderer's frame interval
-        dt = seq[1][0] - seq[0][0]
         seq = [(seq[0][0] + k * dt, im, T) for k, (_, im, T) in enumerate(seq[::speedup])]
+    if still:                  # the first view, standing, with fresh sensor noise
+        rng = np.random.default_rng([seed, 30])
+        t0, im0, T0 = seq[0]
+        standing = [(t0 + k * dt, np.clip(im0 + rng.normal(0.0, STILL_NOISE, im0.shape),
+                                          0, 255).astype(im0.dtype), T0)
+                    for k in range(still)]
+        seq = standing + [(t + still * dt, im, T) for t, im, T in seq]
     camera = {'width': scfg.width, 'height': scfg.height, 'K': scfg.K(), 'D': scfg.D(),
               'distortion_model': 'plumb_bob'}
     gt_s = np.array([s for s, _, _ in seq]) * 1e-9
@@ -146,8 +164,8 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
     start = 0.0
     base = name.removesuffix('_from12')
     if _synthetic_name(base) is not None:
-        trajectory, speedup = _synthetic_name(base)
-        gt_s, gt_T, out = _synthetic(trajectory, seed, overrides, speedup)
+        trajectory, speedup, still = _synthetic_name(base)
+        gt_s, gt_T, out = _synthetic(trajectory, seed, overrides, speedup, still)
     elif base == 'demo':
         from ekf_vo.io.bag import read_ground_truth
         s = run_bag(REPO / 'bags' / 'demo', overrides=overrides, seed=seed)

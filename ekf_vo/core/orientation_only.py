@@ -32,6 +32,16 @@ chain's covariance grows with each reference, as a gyro's would. The world frame
 first frame's camera (or the pose a re-bootstrap attaches at), so the map the bootstrap
 builds later is attached at the chain's orientation of its reference frame
 (core/initialisation.py).
+
+A frame whose fit against the reference fails while the step from the last frame with an
+orientation is a rotation is published from that step (`carried`), with a second
+translation prior; the chain itself keeps no orientation for it, so its failed fit stays
+the evidence of a translation it is. A camera that stood still and then moves is told
+from one that turns (`judge_pair`): a translation across the view passes for a rotation of
+about t/d and gives the bootstrap pair a parallax of about t/d, while a turn's pair has
+next to none; and a robot driving off forward leaves its frames unexplained for longer
+than a turn's edge does. Once seen, the chain's orientation is not published any more
+and the bootstrap is not held to it (docs/method.md §15.9).
 """
 from __future__ import annotations
 
