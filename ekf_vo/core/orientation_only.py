@@ -178,6 +178,7 @@ class OrientationChain:
         self.translating = False       #: the last frame tracked moved by more than a turn
         self.started_ns: int | None = None
         self._carry_from: _Frame | None = None
+        self._carried: tuple[int | None, Orientation | None] = (None, None)
         self.n_references = 0          #: references taken after the first
         #: a bootstrap pair has shown the chain's rotation to be a translation (sticky
         #: until the next restart: a camera seen to translate is not turning in place)
@@ -253,6 +254,8 @@ class OrientationChain:
             self.translation_seen = True
             return True
         ref = self.reference
+        if est is None:        # the step since the last frame with one, if a rotation
+            est = self.carried()
         if est is None or ref is None or not parallax_deg >= TRANSLATION_MIN_PARALLAX_DEG:
             return False
         R = est.R_world_cam.T @ ref.R_world_cam
@@ -272,10 +275,12 @@ class OrientationChain:
         base, cur = self._carry_from, self._prev
         if base is None or cur is None:
             return None
-        est = self._chain(base, cur.ids, cur.b, self._prev_stamp_ns)
-        if est is not None:
-            est.cov_world = est.cov_world + self.model_sigma_rad ** 2 * np.eye(3)
-        return est
+        if self._carried[0] != self._prev_stamp_ns:       # once a frame
+            est = self._chain(base, cur.ids, cur.b, self._prev_stamp_ns)
+            if est is not None:
+                est.cov_world = est.cov_world + self.model_sigma_rad ** 2 * np.eye(3)
+            self._carried = (self._prev_stamp_ns, est)
+        return self._carried[1]
 
     def new_reference(self, est: Orientation | None) -> None:
         """The bootstrap took the last tracked frame as its reference: later frames are
