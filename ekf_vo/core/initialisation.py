@@ -91,9 +91,10 @@ class Initialisation:
             # nothing is lost by waiting for a pair that conditions the map well and
             # agrees with it; a camera that translates is the essential matrix's case
             # (docs/method.md §15.9)
-            strict = chain is not None and self._orientation_published and \
-                not chain.translating and not chain.translation_seen
-            gate = self.cfg.orientation_only_bootstrap_parallax_deg if strict else None
+            slow = chain is not None and self._orientation_published and \
+                not chain.translating
+            strict = slow and not chain.translation_seen
+            gate = self.cfg.orientation_only_bootstrap_parallax_deg if slow else None
             boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
                                               baseline=baseline, min_parallax_deg=gate,
                                               kept_share=n_common / max(ref.n_shared, 1))
