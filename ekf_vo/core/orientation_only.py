@@ -149,6 +149,10 @@ class _Frame:
     ids: np.ndarray
     b: np.ndarray              # unit bearings
     est: Orientation | None
+    #: est, or, when the fit against the reference failed, the last frame's stepped
+    #: orientation and the step from it, with a translation prior per step (None: a
+    #: step no rotation explains broke it)
+    stepped: Orientation | None = None
 
 
 class OrientationChain:
@@ -211,10 +215,15 @@ class OrientationChain:
         # translating: not even the step from the previous frame is a rotation (a car's
         # near points); a fit against the reference can also fail on a few tracks at the
         # image's edge while the camera turns, and then the step is one
-        self.translating = est is None and (
-            self._prev is None or self._fit(self._prev, ids, b) is None)
+        step = None if est is not None or self._prev is None else \
+            self._fit(self._prev, ids, b)
+        self.translating = est is None and step is None
+        stepped = est
+        if step is not None and self._prev.stepped is not None:
+            stepped = self._compose(self._prev.stepped, step, stamp_ns)
+            stepped.cov_world = stepped.cov_world + self.model_sigma_rad ** 2 * np.eye(3)
         self.previous = None if self._prev is None else self._prev.est
-        self._prev = _Frame(ids, b, est)
+        self._prev = _Frame(ids, b, est, stepped)
         self._prev_stamp_ns = int(stamp_ns)
         if est is not None:
             self.failing_since_ns = None
@@ -234,12 +243,15 @@ class OrientationChain:
     def _chain(self, base: _Frame, ids: np.ndarray, b: np.ndarray, stamp_ns: int
                ) -> Orientation | None:
         fit = self._fit(base, ids, b)
-        if fit is None:
-            return None
-        R = base.est.R_world_cam @ fit.R_cur_ref.T
+        return None if fit is None else self._compose(base.est, fit, stamp_ns)
+
+    @staticmethod
+    def _compose(base: Orientation, fit: RotationFit, stamp_ns: int) -> Orientation:
+        """The orientation `fit` leads to from `base`, with both errors."""
+        R = base.R_world_cam @ fit.R_cur_ref.T
         # the fit's error, a rotation vector in the current frame, seen from the world
         noise = R @ fit.cov_cur @ R.T
-        return Orientation(R, base.est.cov_world + noise, noise, int(stamp_ns))
+        return Orientation(R, base.cov_world + noise, noise, int(stamp_ns))
 
     def judge_pair(self, est: Orientation | None, parallax_deg: float) -> bool:
         """Whether the bootstrap pair of the reference and the frame of `est` (its median
@@ -305,11 +317,16 @@ class OrientationChain:
     def reference_or_last(self, stamp_ns: int, rate_sigma: float
                           ) -> tuple[np.ndarray, np.ndarray]:
         """(R_world_cam, 3x3 world covariance) of the reference frame taken at
-        `stamp_ns`: its own orientation, or, when its fit failed (the camera was
-        translating), the last orientation known before it, uncertain by a turn at
-        `rate_sigma` [rad/s] over the time between."""
+        `stamp_ns`: its own orientation; or, when its fit failed (the camera was
+        translating), the orientation stepped on to it frame by frame, each step a
+        rotation fit with a translation prior; or, when a step was no rotation either,
+        the last orientation known before it, uncertain by a turn at `rate_sigma`
+        [rad/s] over the time between."""
         if self._ref is not None and self._ref.est is not None:
             return self._ref.est.R_world_cam, self._ref.est.cov_world
+        if self._ref is not None and self._ref.stepped is not None:
+            # stepped on from the last frame with an orientation (a robot driving off)
+            return self._ref.stepped.R_world_cam, self._ref.stepped.cov_world
         last = self._last_good.est
         dt = max(stamp_ns - last.stamp_ns, 0) * 1e-9
         return last.R_world_cam, last.cov_world + (rate_sigma * dt) ** 2 * np.eye(3)
