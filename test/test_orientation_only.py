@@ -311,3 +311,36 @@ def test_a_camera_that_stands_then_moves_gets_its_map(trajectory):
         d = geo.quat_to_rotvec(geo.matrix_to_quat(R_gt0.T @ T_gt[:3, :3] @
                                                   r.T_world_cam[:3, :3].T))
         assert d @ np.linalg.solve(r.pose_cov[3:, 3:], d) < 16.27
+
+
+def test_a_reference_the_chain_could_not_fit_is_stepped_on_to():
+    """A reference taken at a frame whose fit against the old reference failed (a robot
+    that drove off) is attached at the orientation stepped on to it from the last frame
+    with one, with a translation prior for the step: not at the last orientation with a
+    turn of unknown size."""
+    from ekf_vo.core.orientation_only import OrientationChain
+    rng = np.random.default_rng(6)
+    chain = OrientationChain(CAMERA, 1.0, 3.0, 0.5, rng)
+    ids = np.arange(300)
+    px_ref = rng.uniform((20, 20), (620, 460), (300, 2))
+    z = np.where(ids < 120, 1.0, 10.0)                  # a near and a far group
+    X = np.column_stack(((px_ref - K[:2, 2]) / K[0, 0], np.ones(300))) * z[:, None]
+
+    def seen(R_cur_ref, t_cur_ref):
+        Xc = X @ R_cur_ref.T + t_cur_ref
+        return Xc[:, :2] / Xc[:, 2:] * K[0, 0] + K[:2, 2] + rng.normal(0, 0.3, (300, 2))
+
+    R_mid = geo.quat_to_matrix(geo.rotvec_to_quat(np.radians([0.0, 3.0, 0.0])))
+    R_end = geo.quat_to_matrix(geo.rotvec_to_quat(np.radians([0.0, 3.5, 0.5])))
+    chain.new_reference(chain.track(0, ids, px_ref))
+    assert chain.track(33_000_000, ids, seen(R_mid, np.array([0.010, 0.0, 0.0])))
+    end = chain.track(66_000_000, ids, seen(R_end, np.array([0.016, 0.0, 0.0])))
+    assert end is None and not chain.translating
+    chain.new_reference(end)                       # the bootstrap takes it as reference
+    assert chain.reference is None
+    R, cov = chain.reference_or_last(66_000_000, rate_sigma=0.5)
+    d = geo.quat_to_rotvec(geo.matrix_to_quat(R_end.T @ R.T))
+    assert d @ np.linalg.solve(cov, d) < 16.27
+    assert np.all(np.linalg.eigvalsh(cov) >= chain.model_sigma_rad ** 2)
+    # it follows the camera's turn since the last frame with an orientation (0.7 deg)
+    assert np.degrees(np.linalg.norm(d)) < 0.7 * _angle_deg(R_end @ R_mid.T)
