@@ -226,11 +226,10 @@ class OrientationChain:
         self._prev = _Frame(ids, b, est, stepped)
         self._prev_stamp_ns = int(stamp_ns)
         if est is not None:
+            self._last_good = self._prev
             self.failing_since_ns = None
         elif self.failing_since_ns is None:
             self.failing_since_ns = int(stamp_ns)
-        if est is not None:
-            self._last_good = self._prev
         return est
 
     def _fit(self, base: _Frame, ids: np.ndarray, b: np.ndarray) -> RotationFit | None:
