@@ -252,30 +252,27 @@ class OrientationChain:
         noise = R @ fit.cov_cur @ R.T
         return Orientation(R, base.cov_world + noise, noise, int(stamp_ns))
 
-    def judge_pair(self, est: Orientation | None, parallax_deg: float) -> bool:
-        """Whether the bootstrap pair of the reference and the frame of `est` (its median
-        parallax, deg) shows the chain's rotation between them to be a translation
-        passing for one (TRANSLATION_PARALLAX_RATIO): a camera that stood still, then
-        walked or flew over a floor; or no fit has explained the frames for
-        TRANSLATION_FAILED_FOR_S (a robot that drove off). Remembered in
-        translation_seen."""
+    def judge_pair(self, est: Orientation | None, parallax_deg: float) -> None:
+        """Note in translation_seen whether the bootstrap pair of the reference and the
+        frame of `est` (its median parallax, deg) shows the chain's rotation between them
+        to be a translation passing for one (TRANSLATION_PARALLAX_RATIO): a camera that
+        stood still, then walked or flew over a floor; or whether no fit has explained
+        the frames for TRANSLATION_FAILED_FOR_S (a robot that drove off)."""
         if est is None and self.failing_since_ns is not None and self._prev is not None \
                 and (self._prev_stamp_ns - self.failing_since_ns) * 1e-9 >= \
                 TRANSLATION_FAILED_FOR_S:
             self.translation_seen = True
-            return True
+            return
         ref = self.reference
         if est is None:        # the step since the last frame with one, if a rotation
             est = self.carried()
         if est is None or ref is None or not parallax_deg >= TRANSLATION_MIN_PARALLAX_DEG:
-            return False
+            return
         R = est.R_world_cam.T @ ref.R_world_cam
         turn = np.degrees(np.linalg.norm(geo.quat_to_rotvec(geo.matrix_to_quat(R))))
         lo, hi = TRANSLATION_PARALLAX_RATIO
         if lo * turn <= parallax_deg <= hi * turn:
             self.translation_seen = True
-            return True
-        return False
 
     def carried(self) -> Orientation | None:
         """For publishing only: the orientation of the frame just tracked when its fit
