@@ -69,6 +69,13 @@ class VoConfig(_Params):
     corner_quality: float = param(
         0.005, 'Shi-Tomasi quality level relative to the best corner.', '', 1e-5, 0.5,
         group='front end')
+    repeated_image_max_skip: int = param(
+        2, 'An image identical, pixel for pixel, to the one processed before it is skipped '
+        '(counted as repeated_image), up to this many in a row: a driver or relay that '
+        'repeats a frame under a new stamp would tell the filter the camera stopped for '
+        'that time and jerk its velocity. Further repeats are processed: a noise-free '
+        'simulated camera standing still. 0: never skip (docs/ros.md).', 'count', 0, 1000,
+        group='front end')
     klt_window_px: int = param(21, 'KLT search window side.', 'px', 5, 101, group='front end')
     klt_pyramid_levels: int = param(
         4, 'KLT pyramid levels (more levels follow faster motion).', 'count', 0, 8,

@@ -11,8 +11,10 @@ demo and the benchmarks — so the rules about inputs are written once:
   or a jump of more than FUTURE_JUMP_S ahead is rejected; a stamp far behind the last one
   (TIME_RESET_S: a looping bag, a simulator reset) resets the estimator when that frame
   is processed;
-- frames: an image whose size is not the calibration's is rejected; a reset requested
-  from outside happens before the next frame.
+- frames: an image whose size is not the calibration's is rejected; an image identical
+  to the one processed before it is skipped, up to `repeated_image_max_skip` in a row (a
+  driver repeating a frame under a new stamp: no new measurement, and processed it would
+  say the camera stopped); a reset requested from outside happens before the next frame.
 Rejections come back as `Rejection(key, text)` and are counted in `counters[key]`, so a
 node can throttle its log per kind and publish the counts. Speaks numpy arrays, integer
 nanosecond stamps and plain mappings; no ROS types.
@@ -76,6 +78,8 @@ class VoStream:
         self._last_stamp_ns: int | None = None        # last admitted (arrival order)
         self._last_processed_ns: int | None = None    # last run through the estimator
         self._pending_reset: str | None = None
+        self._last_image: np.ndarray | None = None    # a copy of the last one processed
+        self._repeats = 0                             # images identical to it, in a row
         self._book = CalibrationBook()             # stamped CameraInfo (pairing.py)
         #: the last processed image had a CameraInfo of its own stamp (None: none yet)
         self.last_pair_exact: bool | None = None
@@ -198,6 +202,9 @@ class VoStream:
                 return self._reject('size_mismatch', (
                     f'image {gray.shape[1]}x{gray.shape[0]} does not match the CameraInfo '
                     f'{camera.width}x{camera.height}: dropped'))
+            if self._repeated(gray):
+                return self._reject('repeated_image', 'image identical to the previous one '
+                                    '(a frame repeated under a new stamp): skipped')
             reasons = []
             if self._last_processed_ns is not None and stamp_ns < self._last_processed_ns:
                 reasons.append('time went backwards (looping bag or sim reset)')
@@ -224,6 +231,18 @@ class VoStream:
         if not scaled:                     # a frame that did not track
             self._apply_scale(vo, result)
         return result
+
+    def _repeated(self, gray: np.ndarray) -> bool:
+        """True for an image identical to the last one processed, while fewer than
+        repeated_image_max_skip + 1 have come in a row. Real sensor noise makes two
+        exposures differ; equal pixels are the same exposure sent twice."""
+        last = self._last_image
+        if last is None or last.shape != gray.shape or not np.array_equal(last, gray):
+            self._last_image = np.array(gray, copy=True)
+            self._repeats = 0
+            return False
+        self._repeats += 1
+        return self._repeats <= self.cfg.repeated_image_max_skip
 
     def _apply_scale(self, vo: VisualOdometry, result: FrameResult) -> None:
         with self._lock:
