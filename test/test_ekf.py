@@ -4,7 +4,7 @@ import pytest
 
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.ekf import (ANG, POS, QUAT, STATE_DIM, VEL, CameraEKF, motion_jacobians,
-                             motion_model, update)
+                             motion_model, motion_rate, update)
 from ekf_vo.core.observation import ReprojectionModel
 from ekf_vo.tools.synth_points import Sequence, project, run_ekf, smooth_orbit
 
@@ -52,6 +52,40 @@ def test_motion_jacobians_match_finite_differences():
         G_fd[:, i] = (motion_model(ekf.x, dt, d) - motion_model(ekf.x, dt, -d)) / (2 * eps)
     assert np.allclose(F, F_fd, atol=1e-7)
     assert np.allclose(G, G_fd, atol=1e-7)
+
+
+def test_motion_rate_matches_finite_differences_in_the_time_step():
+    ekf, _ = _random_filter(4)
+    dt, eps = 0.07, 1e-7
+    fd = (motion_model(ekf.x, dt + eps) - motion_model(ekf.x, dt - eps)) / (2 * eps)
+    assert np.allclose(motion_rate(ekf.x, dt), fd, atol=1e-7)
+
+
+def test_stamp_error_adds_the_motion_over_it_to_the_prediction():
+    """A stamp wrong by sigma_t moves the predicted state by its rate times sigma_t: the
+    covariance of the prediction gains exactly sigma_t^2 J_t J_t^T, and nothing for a
+    camera that stands still."""
+    ekf, _ = _random_filter(6)
+    dt, st = 1 / 30, 0.004
+    plain, timed = CameraEKF(K), CameraEKF(K)
+    for f in (plain, timed):
+        f.x, f.P = ekf.x.copy(), ekf.P.copy()
+    plain.predict(dt, 2.0, 2.0, 1.0)
+    timed.predict(dt, 2.0, 2.0, 1.0, stamp_sigma_s=st)
+    J_t = motion_rate(ekf.x, dt)
+    # both then pass through the same quaternion normalisation, a linear map of P
+    added = timed.P - plain.P
+    assert np.linalg.eigvalsh(added).min() > -1e-12
+    assert np.allclose(added[POS, POS], st ** 2 * np.outer(J_t[POS], J_t[POS]), atol=1e-12)
+    assert np.allclose(timed.x, plain.x)
+    still = CameraEKF(K)
+    still.x, still.P = ekf.x.copy(), ekf.P.copy()
+    still.x[VEL] = 0.0
+    still.x[ANG] = 0.0
+    plain.x, plain.P = still.x.copy(), still.P.copy()
+    still.predict(dt, 2.0, 2.0, 1.0, stamp_sigma_s=st)
+    plain.predict(dt, 2.0, 2.0, 1.0)
+    assert np.allclose(still.P, plain.P, atol=1e-15)
 
 
 def test_predict_covariance_matches_monte_carlo():

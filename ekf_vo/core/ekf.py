@@ -89,6 +89,16 @@ def motion_jacobians(x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     return F, G
 
 
+def motion_rate(x: np.ndarray, dt: float) -> np.ndarray:
+    """df/d(dt) (13,) of the constant-velocity model at n = 0: how the predicted state
+    moves per second of error in the time step."""
+    w = x[ANG]
+    out = np.zeros(STATE_DIM)
+    out[POS] = x[VEL]
+    out[QUAT] = geo.quat_left_matrix(x[QUAT]) @ geo.rotvec_to_quat_jacobian(w * dt) @ w
+    return out
+
+
 # ---------------------------------------------------------------------- the EKF update
 def normalise_quaternion(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """q <- q/|q| and P <- J P J^T with J = d(q/|q|)/dq on the quaternion block."""
@@ -246,8 +256,10 @@ class CameraEKF:
 
     # ------------------------------------------------------------------ prediction
     def predict(self, dt: float, accel_sigma: float, angular_accel_sigma: float,
-                fading_memory: float) -> None:
-        """Constant-velocity prediction over dt seconds (Jacobians at the prior state)."""
+                fading_memory: float, stamp_sigma_s: float = 0.0) -> None:
+        """Constant-velocity prediction over dt seconds (Jacobians at the prior state).
+        `stamp_sigma_s`: the standard deviation of the image stamp's error; the state
+        moves by (v, q * w / 2) per second of it (docs/method.md §3.5)."""
         if not dt > 0.0:
             raise ValueError(f'dt must be positive, got {dt}')
         F, G = motion_jacobians(self.x, dt)
@@ -255,6 +267,9 @@ class CameraEKF:
         # fading memory (Qi et al. 2016, docs/method.md §3.4): inflate the prior by
         # lambda >= 1
         self.P = fading_memory * (F @ self.P @ F.T) + G @ Qn @ G.T
+        if stamp_sigma_s > 0.0:
+            J_t = motion_rate(self.x, dt)
+            self.P += stamp_sigma_s ** 2 * np.outer(J_t, J_t)
         self.x = motion_model(self.x, dt)
         self.x, self.P = normalise_quaternion(self.x, self.P)
 

@@ -82,7 +82,8 @@ class EkfEstimator:
 
     def predict(self, dt: float) -> None:
         c = self.cfg
-        self.ekf.predict(dt, c.accel_sigma, c.angular_accel_sigma, c.fading_memory)
+        self.ekf.predict(dt, c.accel_sigma, c.angular_accel_sigma, c.fading_memory,
+                         c.stamp_sigma_s)
 
     def update(self, matches: FrameMatches, rng: np.random.Generator) -> UpdateOutcome:
         model, z, sigma = matches.map_measurements(self.ekf.intrinsics,
