@@ -133,6 +133,9 @@ def test_faults_then_good_frames(tmp_path, demo):
         feed.wait_last(stamps_c[-1])
         assert len(odom_after(stamps_c)) >= 0.9 * len(stamps_c), \
             'malformed input between good frames cost tracking'
+        # the last frame again, half a frame later (a driver repeating it): skipped
+        feed.img_pub.publish(_mono8(0, frames[59][0] + dt // 2, frames[59][1]))
+        h.spin_for(0.3)
 
         # D. lens cap: black frames, then good frames -> lost, re-bootstrap
         black = [(st, np.zeros_like(g)) for st, g in frames[60:66]]
@@ -182,10 +185,11 @@ def test_faults_then_good_frames(tmp_path, demo):
         assert int(values.get('out_of_order', 0)) >= 1
         assert int(values.get('future_stamp', 0)) >= 1
         assert int(values.get('time_resets', 0)) >= 1
+        assert int(values.get('repeated_image', 0)) >= 1
         assert vo.alive()
         log = vo.output()
         for text in ('before any valid CameraInfo', 'image rejected', 'CameraInfo rejected',
-                     'time went backwards'):
+                     'time went backwards', 'identical to the previous one'):
             assert text in log, f'no log line for: {text}'
 
 
