@@ -233,8 +233,8 @@ class VoStream:
         return result
 
     def _repeated(self, gray: np.ndarray) -> bool:
-        """True for an image identical to the last one processed, while fewer than
-        repeated_image_max_skip + 1 have come in a row. Real sensor noise makes two
+        """True for an image identical to the last one processed, for the first
+        repeated_image_max_skip of such images in a row. Real sensor noise makes two
         exposures differ; equal pixels are the same exposure sent twice."""
         last = self._last_image
         if last is None or last.shape != gray.shape or not np.array_equal(last, gray):
