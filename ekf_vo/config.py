@@ -179,9 +179,10 @@ class VoConfig(_Params):
         5.0, 'Angular acceleration impulse std: angular velocity noise alpha*dt per step.', 'rad/s^2', 1e-6, 1e4,
         group='ekf')
     stamp_sigma_s: float = param(
-        0.002, 'Standard deviation of an image stamp\'s error (a driver that stamps on '
-        'arrival: 1-5 ms); the prediction is uncertain by the motion over that time '
-        '(docs/method.md §3.5).', 's', 0.0, 1.0, group='ekf')
+        0.0, 'Standard deviation of an image stamp\'s error (a driver that stamps on '
+        'arrival: 1-5 ms); the prediction is uncertain by the motion over that time. '
+        'Off by default: it helps jittered stamps and hurts fast motion (docs/method.md '
+        '§3.5).', 's', 0.0, 1.0, group='ekf')
     init_velocity_sigma: float = param(
         0.5, 'Initial standard deviation of the linear velocity.', 'm/s', 1e-6, 1e4,
         group='ekf')
