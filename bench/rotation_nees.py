@@ -21,7 +21,9 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   (every second or third frame, stamped 1/30 s apart), as a 15 or 10 Hz camera sees the
   same motion (docs/method.md §15.11). With ``_still`` (``walk_still``): the camera
   stands for 1 s before it moves (its first view 30 times, with fresh sensor noise), as
-  a robot waits when the node starts (§15.12).
+  a robot waits when the node starts (§15.12). With ``_repeat``, ``_jitter`` or
+  ``_flicker`` (``orbit_repeat``, ``walk_x3_jitter``): what a camera driver does to the
+  stream (bench/stream_faults.py).
 
     python -m bench.rotation_nees [--sequences ...] [--seeds 0 1 2] [--set NAME=VALUE ...]
                                   [--json OUT]
@@ -43,6 +45,7 @@ from ekf_vo.io.dataset import load_folder
 from ekf_vo.tools.consistency import rotation_nees
 from ekf_vo.tools.evaluate import evaluate
 from ekf_vo.tools.run import parse_overrides, run_bag
+from . import stream_faults
 from .common import machine, shared_data, write_json
 from .real_data import PRESETS
 
@@ -123,21 +126,24 @@ STILL_FRAMES = 30
 STILL_NOISE = 2.0
 
 
-def _synthetic_name(name: str) -> tuple[str, int, int] | None:
-    """(trajectory, speed-up, frames standing first) of a rendered sequence's name
-    ('orbit', 'orbit_x3', 'walk_still'), or None for a real one."""
+def _synthetic_name(name: str) -> tuple[str, int, int, str] | None:
+    """(trajectory, speed-up, frames standing first, stream fault or '') of a rendered
+    sequence's name ('orbit', 'orbit_x3', 'walk_still', 'orbit_repeat'), or None for a
+    real one."""
+    fault = next((f for f in stream_faults.FAULTS if name.endswith('_' + f)), '')
+    name = name.removesuffix('_' + fault) if fault else name
     still = STILL_FRAMES if name.endswith('_still') else 0
     name = name.removesuffix('_still')
     trajectory, _, factor = name.partition('_x')
     if name in SYNTHETIC:
-        return name, 1, still
+        return name, 1, still, fault
     if trajectory in SYNTHETIC and factor in ('2', '3'):
-        return trajectory, int(factor), still
+        return trajectory, int(factor), still, fault
     return None
 
 
 def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
-               still: int = 0):
+               still: int = 0, fault: str = ''):
     from ekf_vo.tools.synth import SynthConfig, render_sequence
     scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory)
     seq = list(render_sequence(scfg))
@@ -151,6 +157,8 @@ def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
                                           0, 255).astype(im0.dtype), T0)
                     for k in range(still)]
         seq = standing + [(t + still * dt, im, T) for t, im, T in seq]
+    if fault:
+        seq = stream_faults.apply(fault, seq, seed)
     camera = {'width': scfg.width, 'height': scfg.height, 'K': scfg.K(), 'D': scfg.D(),
               'distortion_model': 'plumb_bob'}
     gt_s = np.array([s for s, _, _ in seq]) * 1e-9
@@ -164,8 +172,8 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
     start = 0.0
     base = name.removesuffix('_from12')
     if _synthetic_name(base) is not None:
-        trajectory, speedup, still = _synthetic_name(base)
-        gt_s, gt_T, out = _synthetic(trajectory, seed, overrides, speedup, still)
+        trajectory, speedup, still, fault = _synthetic_name(base)
+        gt_s, gt_T, out = _synthetic(trajectory, seed, overrides, speedup, still, fault)
     elif base == 'demo':
         from ekf_vo.io.bag import read_ground_truth
         s = run_bag(REPO / 'bags' / 'demo', overrides=overrides, seed=seed)
