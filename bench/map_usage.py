@@ -24,14 +24,14 @@ from pathlib import Path
 import numpy as np
 
 from ekf_vo.config import VoConfig
-from ekf_vo.core.stream import Rejection, VoStream
+from ekf_vo.core.stream import VoStream
 from ekf_vo.tools.demo import load_demo_frames
 from .common import section_main, shared_data
 
 
 def frame_usage(stream: VoStream, res) -> tuple[float, float, int] | None:
     """(track share, found share, map points in view) of one ok frame, or None."""
-    if isinstance(res, Rejection) or not res.ok or res.track_has_point is None \
+    if not res.ok or res.track_has_point is None \
             or len(res.track_ids) == 0:
         return None
     vo = stream.vo

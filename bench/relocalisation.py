@@ -28,17 +28,15 @@ SCALE_SPAN = (171, 220)
 def _offline(frames, info, gt_ns, gt_T, black, seed):
     from ekf_vo.config import VoConfig
     from ekf_vo.core.camera import PinholeCamera
-    from ekf_vo.core.stream import Rejection, VoStream
+    from ekf_vo.core.stream import VoStream
     from ekf_vo.tools.evaluate import evaluate
     stream = VoStream(VoConfig(), seed=seed)
     stream.set_camera(PinholeCamera.from_camera_info(info))
     oks, est = [], {}
     for k, (t, g) in enumerate(frames):
         r = stream.process(np.zeros_like(g) if k in black else g, t)
-        # black frames are identical: the first repeats are skipped (repeated_image)
-        ok = not isinstance(r, Rejection) and bool(r.ok)
-        oks.append(ok)
-        if ok:
+        oks.append(bool(r.ok))      # a skipped repeat of a black frame: a Rejection, not ok
+        if r.ok:
             est[k] = r.T_world_cam
     stream.vo.local_map.close()
     ks = sorted(est)

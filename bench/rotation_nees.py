@@ -108,7 +108,7 @@ def _run_stream(camera: dict, frames, overrides: dict, seed: int):
     for stamp_ns, gray, known in frames:
         res = stream.process(gray, stamp_ns,
                              known if stream.state.value == 'initialising' else None)
-        oks.append(bool(getattr(res, 'ok', False)))
+        oks.append(bool(res.ok))
         if oks[-1]:
             stamps.append(stamp_ns * 1e-9)
             poses.append(res.T_world_cam)

@@ -78,7 +78,7 @@ def _offline_positions(info: dict, frames: list) -> dict:
     positions = {}
     for stamp, gray in frames:
         r = offline.process(gray, stamp)
-        if getattr(r, 'ok', False):
+        if r.ok:
             positions[stamp] = r.T_world_cam[:3, 3].copy()
     offline.vo.local_map.close()
     return positions

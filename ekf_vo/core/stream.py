@@ -50,6 +50,12 @@ class Rejection:
     key: str
     text: str
 
+    @property
+    def ok(self) -> bool:
+        """False: a rejected frame has no pose (as FrameResult.ok), so a caller that only
+        wants the published poses reads `ok` of either."""
+        return False
+
 
 class VoStream:
     """One camera's stream of calibrations and frames into the estimator.
