@@ -242,6 +242,8 @@ class VoStream:
         """True for an image identical to the last one processed, for the first
         repeated_image_max_skip of such images in a row. Real sensor noise makes two
         exposures differ; equal pixels are the same exposure sent twice."""
+        if self.cfg.repeated_image_max_skip == 0:      # off: no copy, no comparison
+            return False
         last = self._last_image
         if last is None or last.shape != gray.shape or not np.array_equal(last, gray):
             self._last_image = np.array(gray, copy=True)
