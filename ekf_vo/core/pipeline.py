@@ -37,6 +37,7 @@ from .features import FeatureTracker, Tracks
 from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
 from .health import Health, HealthMonitor, found_share
 from .initialisation import Initialisation
+from .loss import LossHandling
 from .local_map import LocalMapper
 from .map import LandmarkMap
 from .map_growth import MapGrowth
@@ -51,7 +52,7 @@ from .point_filter import PointFilter
 
 logger = logging.getLogger(__name__)
 
-class VisualOdometry(Initialisation):
+class VisualOdometry(Initialisation, LossHandling):
     """Monocular VO with the hybrid camera-only EKF. One instance per camera."""
 
     def __init__(self, cfg: VoConfig, camera: PinholeCamera, seed: int = 0) -> None:
@@ -114,6 +115,7 @@ class VisualOdometry(Initialisation):
                                      self.world_cov.carried_covariance[3:, 3:])
         self._last_stamp_ns: int | None = None
         self._failed_frames = 0
+        self._last_published_state = None
         self.growth.reset()
         self.health.reset()
         self._rotation_job.reset()
@@ -140,78 +142,6 @@ class VisualOdometry(Initialisation):
         self.n_resets += 1
         self._reset_state()
 
-    def _keep_anchor(self) -> None:
-        """Where a later bootstrap attaches its map: the filter's pose now, its speed
-        (the scale) and its covariance (map_uncertainty.WorldCovariance.carry)."""
-        self._anchor_T_world_cam = self.ekf.T_world_cam
-        self._anchor_speed = float(np.linalg.norm(self.ekf.x[VEL]))
-        self.world_cov.carry(self.ekf.pose_covariance(), self.ekf.x[POS])
-
-    def _lose(self, reason: str) -> None:
-        """Tracking lost: keep the map and look for the camera in it (relocalise.py) for
-        relocalise_timeout_s; without a relocaliser or a described map, re-bootstrap."""
-        self._take_check()
-        if self.relocaliser is None or self.state != TrackingState.TRACKING or \
-                not len(self.map.described()[0]) or self._rotation_job.map_lost:
-            self.reset(reason)
-            return
-        logger.info('VO lost: %s; relocalising', reason)
-        self._keep_anchor()      # what a re-bootstrap needs if relocalisation fails
-        self._lost_velocity = (self.ekf.x[VEL].copy(), self.ekf.x[ANG].copy())
-        self._reloc_failed_s = 0.0
-        self.state = TrackingState.LOST
-        self.tracker.reset()
-        self.health.reset()
-        self.growth.reset()
-        self._failed_frames = 0
-        self._prev_ids = np.zeros(0, np.int64)
-
-    def _relocalise(self, gray: np.ndarray, stamp_ns: int) -> FrameResult:
-        """A frame while lost: pose it in the kept map, or re-bootstrap after
-        relocalise_timeout_s. The filter restarts at the PnP pose and covariance with the
-        velocities it had when it lost track."""
-        tracks = self.tracker.track(gray)
-        res = FrameResult(stamp_ns, TrackingState.LOST, n_tracks=len(tracks),
-                          health=Health.LOST.value, health_reason='relocalising')
-        dt = (stamp_ns - self._last_stamp_ns) * 1e-9 if self._last_stamp_ns else 0.0
-        if 0.0 < dt <= self.cfg.max_dt_s:
-            # the motion model goes on, unobserved: where a re-bootstrap would attach its
-            # map, with the uncertainty the time lost has added
-            self.estimator.predict(dt)
-        found = self.relocaliser.attempt(gray, self.map)
-        if found is None:
-            # only frames with texture count: a covered lens may last, a map that is not
-            # recognised in good images is given relocalise_timeout_s
-            if len(tracks) >= self.cfg.bootstrap_min_inliers and self._last_stamp_ns:
-                self._reloc_failed_s += (stamp_ns - self._last_stamp_ns) * 1e-9
-            res.message = f'lost: relocalising ({self._reloc_failed_s:.1f} s in vain)'
-            if self._reloc_failed_s > self.cfg.relocalise_timeout_s:
-                self._keep_anchor()  # the pose predicted through the time lost
-                self.reset(f'not relocalised in {self._reloc_failed_s:.1f} s of images')
-                res.state = self.state
-            return res
-        tracks = self.tracker.adopt(found.ids, found.px)
-        c = self.cfg
-        v_world, w_cam = self._lost_velocity
-        # the velocities are stale by the time lost: uncertain by twice their size
-        self.ekf.initialise(found.T_world_cam, v_world, w_cam, c.init_pose_sigma,
-                            max(c.init_velocity_sigma, 2 * float(np.linalg.norm(v_world))),
-                            max(c.init_angular_velocity_sigma,
-                                2 * float(np.linalg.norm(w_cam))))
-        self.ekf.set_pose(found.T_world_cam, found.pose_cov)
-        self.state = TrackingState.TRACKING
-        self.growth.remember_pose(self.frame_index, found.T_world_cam)
-        self._inflation = 1.0
-        self._published_cov = self.world_cov.compose(
-            found.pose_cov, found.T_world_cam, self.map, found.ids,
-            self.map.lookup(found.ids)[1], None)
-        res.state, res.ok, res.n_inliers = TrackingState.TRACKING, True, len(found.ids)
-        res.health, res.health_reason = Health.OK.value, ''
-        res.message = f'relocalised on {len(found.ids)} map points'
-        has_point = self.map.contains(tracks.ids)
-        self._fill_output(res, tracks, has_point, np.isin(tracks.ids, found.ids))
-        return res
-
     # ------------------------------------------------------------------ main entry
     def process(self, gray: np.ndarray, stamp_ns: int,
                 known_T_world_cam: np.ndarray | None = None,
@@ -232,7 +162,8 @@ class VisualOdometry(Initialisation):
         stamp_ns = int(stamp_ns)
         if self._last_stamp_ns is not None and self.state == TrackingState.TRACKING and \
                 (stamp_ns - self._last_stamp_ns) * 1e-9 > self.cfg.max_dt_s:
-            self._lose(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s')
+            self._lose(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s',
+                       self._last_stamp_ns)
         self.frame_index += 1
         if self.state == TrackingState.TRACKING:
             result = self._track(gray, stamp_ns, on_pose)
@@ -310,6 +241,8 @@ class VisualOdometry(Initialisation):
 
         res.ok = self._failed_frames == 0
         self._fill_pose(res)
+        if res.ok:
+            self._remember_good(stamp_ns)
         if on_pose is not None:
             on_pose(res)                # the pose is final: publish before the map work
 
@@ -355,7 +288,7 @@ class VisualOdometry(Initialisation):
             self._failed_frames = 0
         if self._failed_frames >= c.max_failed_frames or pos_sigma > c.max_position_sigma_m:
             why = res.message or f'position sigma {pos_sigma:.2f} m'
-            self._lose(f'tracking lost ({why})')
+            self._lose(f'tracking lost ({why})', res.stamp_ns)
             res.state, res.message = self.state, f'lost: {why}'
             res.health, res.health_reason = Health.LOST.value, why
             return True
@@ -590,9 +523,6 @@ class VisualOdometry(Initialisation):
 
     _prev_ids = np.zeros(0, np.int64)
     _published_cov = np.zeros((6, 6))
-    _reloc_failed_s = 0.0          #: textured frames' time spent relocalising in vain
-    _lost_velocity = (np.zeros(3), np.zeros(3))
- 
     _ray_inliers = np.zeros(0, bool)   #: the last update's verdicts on rays without depth
     _depth_guess: float | None = None  #: median depth of the map in view (bearing.py)
     last_rotation_check = None     #: the last keyframe pair's rotation_check.RotationCheck
