@@ -143,7 +143,10 @@ def _synthetic_name(name: str) -> tuple[str, int, int, str] | None:
 
 
 def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
-               still: int = 0, fault: str = ''):
+               still: int = 0, fault: str = '', run=None):
+    """Render a sequence (ground-truth stamps [s] and T_world_cam) and feed it to
+    `run(camera, frames, overrides, seed)` (default: _run_stream), whose result is
+    returned third."""
     from ekf_vo.tools.synth import SynthConfig, render_sequence
     scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory)
     seq = list(render_sequence(scfg))
@@ -163,8 +166,8 @@ def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
               'distortion_model': 'plumb_bob'}
     gt_s = np.array([s for s, _, _ in seq]) * 1e-9
     gt_T = np.array([T for _, _, T in seq])
-    return gt_s, gt_T, _run_stream(camera, ((s, im, None) for s, im, _ in seq), overrides,
-                                   seed)
+    return gt_s, gt_T, (run or _run_stream)(camera, ((s, im, None) for s, im, _ in seq),
+                                            overrides, seed)
 
 
 def run_one(name: str, seed: int, overrides: dict) -> dict:

@@ -7,7 +7,6 @@ model of least robust cost.
 """
 from __future__ import annotations
 
-import dataclasses
 
 import cv2
 import numpy as np
@@ -77,7 +76,7 @@ def test_the_rendered_walk_after_standing_bootstraps_within_its_covariance() -> 
     camera = PinholeCamera.from_camera_info({'width': cfg.width, 'height': cfg.height,
                                              'K': cfg.K(), 'D': cfg.D(),
                                              'distortion_model': 'plumb_bob'})
-    vo = VisualOdometry(dataclasses.replace(VoConfig()), camera, seed=6)
+    vo = VisualOdometry(VoConfig(), camera, seed=6)
     try:
         for k, (stamp, img, T_gt) in enumerate(frames):
             res = vo.process(img, stamp)

@@ -295,7 +295,7 @@ class Initialisation:
         self.world_cov.last = (self._published_cov, T_world_cur[:3, 3].copy())
         self.state = TrackingState.TRACKING
         self._failed_frames = 0
-        self._remember_good(res.stamp_ns)
+        self._remember_published_state(res.stamp_ns)
         for f, _, _, T in sources:
             self.growth.remember_pose(f, T)
         self.growth.remember_pose(self.frame_index, T_world_cur)

@@ -23,10 +23,10 @@ class LossHandling:
 
     _reloc_failed_s = 0.0          #: textured frames' time spent relocalising in vain
     _lost_velocity = (np.zeros(3), np.zeros(3))
-    #: the filter's (x, P, stamp_ns) at the last published frame (_remember_good)
+    #: the filter's (x, P, stamp_ns) at the last published frame (_remember_published_state)
     _last_published_state: tuple[np.ndarray, np.ndarray, int] | None = None
 
-    def _remember_good(self, stamp_ns: int) -> None:
+    def _remember_published_state(self, stamp_ns: int) -> None:
         """A frame was published: its state is the one a loss goes back to."""
         self._last_published_state = (self.ekf.x.copy(), self.ekf.P.copy(), int(stamp_ns))
 
@@ -113,7 +113,7 @@ class LossHandling:
             found.pose_cov, found.T_world_cam, self.map, found.ids,
             self.map.lookup(found.ids)[1], None)
         res.state, res.ok, res.n_inliers = TrackingState.TRACKING, True, len(found.ids)
-        self._remember_good(stamp_ns)
+        self._remember_published_state(stamp_ns)
         res.health, res.health_reason = Health.OK.value, ''
         res.message = f'relocalised on {len(found.ids)} map points'
         has_point = self.map.contains(tracks.ids)

@@ -242,7 +242,7 @@ class VisualOdometry(Initialisation, LossHandling):
         res.ok = self._failed_frames == 0
         self._fill_pose(res)
         if res.ok:
-            self._remember_good(stamp_ns)
+            self._remember_published_state(stamp_ns)
         if on_pose is not None:
             on_pose(res)                # the pose is final: publish before the map work
 
