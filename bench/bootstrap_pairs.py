@@ -8,10 +8,12 @@ of this pair is shared by the whole first map, and a first published pose hides 
 the orientation is aligned there, so it is measured here on its own.
 
     python -m bench.bootstrap_pairs [--sequences walk walk_still ...] [--seeds 0 1 2]
+                                    [--set NAME=VALUE ...]
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
 import numpy as np
@@ -21,21 +23,28 @@ from ekf_vo.core import geometry as geo
 from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.map_uncertainty import relative_pose_covariance
 from ekf_vo.core.stream import VoStream
+from ekf_vo.tools.run import parse_overrides
 from . import rotation_nees
 
 
 def _first_pair(camera: dict, frames, overrides: dict, seed: int):
-    """(reference frame, current frame, T_world_ref, T_world_cur, map points) of the
-    first bootstrap, or None."""
-    stream = VoStream(VoConfig().validate(), seed=seed)      # as bench.rotation_nees
+    """(stamp of the reference frame [ns], stamp of the current frame, T_world_ref,
+    T_world_cur, map points, K) of the first bootstrap, or None. Stamps, not indices:
+    the stream may skip frames before the pipeline counts them (repeats)."""
+    cfg = dataclasses.replace(VoConfig(), **overrides).validate()
+    stream = VoStream(cfg, seed=seed)                     # as bench.rotation_nees
     stream.set_camera(PinholeCamera.from_camera_info(camera))
+    counted = {}                                          # pipeline frame index -> stamp
     try:
-        for k, (stamp, img, _) in enumerate(frames):
+        for stamp, img, _ in frames:
             res = stream.process(img, stamp)
-            if res.ok and res.bootstrapped:
-                vo = stream.vo
+            vo = stream.vo
+            if vo is None:
+                continue
+            counted.setdefault(vo.frame_index, stamp)
+            if res.ok and getattr(res, 'bootstrapped', False) and vo.local_map is not None:
                 kf = vo.local_map.keyframes
-                return (res.reference_frame_index, k, kf[0].T_world_cam_filter,
+                return (counted[res.reference_frame_index], stamp, kf[0].T_world_cam_filter,
                         kf[-1].T_world_cam_filter, vo.map.X_world.copy(), vo.camera.K)
     finally:
         if stream.vo is not None:
@@ -43,17 +52,21 @@ def _first_pair(camera: dict, frames, overrides: dict, seed: int):
     return None
 
 
-def measure(name: str, seed: int) -> dict:
+def measure(name: str, seed: int, overrides: dict | None = None) -> dict:
+    """The first bootstrap pair of one rendered sequence against its ground truth."""
     trajectory, speedup, still, fault = rotation_nees._synthetic_name(name)
-    gt_s, gt_T, pair = rotation_nees._synthetic(trajectory, seed, {}, speedup, still, fault,
-                                                run=_first_pair)
+    overrides = overrides or {}
+    gt_s, gt_T, pair = rotation_nees._synthetic(trajectory, seed, overrides, speedup, still,
+                                                fault, run=_first_pair)
     if pair is None:
         return {'sequence': name, 'seed': seed, 'pair': None}
-    ref, cur, T_ref, T_cur, X, K = pair
+    s_ref, s_cur, T_ref, T_cur, X, K = pair
+    ref, cur = (int(np.argmin(np.abs(gt_s - s * 1e-9))) for s in (s_ref, s_cur))
     R_est = T_ref[:3, :3].T @ T_cur[:3, :3]
     R_true = gt_T[ref][:3, :3].T @ gt_T[cur][:3, :3]
     d_world = T_ref[:3, :3] @ geo.quat_to_rotvec(geo.matrix_to_quat(R_est @ R_true.T))
-    S = relative_pose_covariance(K, T_ref, T_cur, X, VoConfig().pixel_sigma_px)[3:, 3:]
+    sigma_px = dataclasses.replace(VoConfig(), **overrides).pixel_sigma_px
+    S = relative_pose_covariance(K, T_ref, T_cur, X, sigma_px)[3:, 3:]
     return {'sequence': name, 'seed': seed, 'pair': (ref, cur),
             'err_deg': float(np.degrees(np.linalg.norm(d_world))),
             'nees': float(d_world @ np.linalg.solve(S, d_world)),
@@ -64,7 +77,13 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--sequences', nargs='+', default=['walk', 'walk_still', 'orbit'])
     p.add_argument('--seeds', nargs='+', type=int, default=list(range(8)))
+    p.add_argument('--set', nargs='+', default=[], metavar='NAME=VALUE')
     args = p.parse_args(argv)
+    try:
+        overrides = parse_overrides(args.set)
+    except ValueError as exc:
+        print(f'bootstrap_pairs: {exc}', file=sys.stderr)
+        return 2
     for name in args.sequences:
         if rotation_nees._synthetic_name(name) is None:
             print(f'bootstrap_pairs: {name} is not a rendered sequence', file=sys.stderr)
@@ -73,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     print('|---|---|---|---|---|---|')
     for name in args.sequences:
         for seed in args.seeds:
-            r = measure(name, seed)
+            r = measure(name, seed, overrides)
             if r['pair'] is None:
                 print(f'| {name} | {seed} | none | | | |', flush=True)
                 continue

@@ -93,3 +93,21 @@ def test_the_rendered_walk_after_standing_bootstraps_within_its_covariance() -> 
     assert np.allclose(frames[ref][2][:3, :3], frames[0][2][:3, :3])
     R_rel_est = res.T_world_cam[:3, :3]
     assert _angle_deg(R_rel_est @ R_rel_true.T) < 0.5
+
+
+def test_the_winning_model_keeps_the_translation_in_front_with_outliers() -> None:
+    """The sign of t is voted by the winning model's inliers only: 45 % of the
+    correspondences are random and must not turn the camera round. (With that many
+    outliers the truncated cost is bumpy: from this start the model ends 0.01-0.55 deg
+    off, against 0.01-0.04 from the truth; the other basin is 1-3 deg away.)"""
+    for seed in range(20):
+        p_ref, p_cur, R_true, t_true = _forward_pair(seed)
+        rng = np.random.default_rng(100 + seed)
+        bad = rng.random(len(p_cur)) < 0.45
+        p_cur = p_cur.copy()
+        p_cur[bad] = rng.uniform([0, 0], [640, 480], (int(bad.sum()), 2))
+        turned = cv2.Rodrigues(np.array([0.0, np.radians(40.0), 0.0]).reshape(3, 1))[0] \
+            @ t_true
+        R, t = polish_relative_pose(R_true, turned, p_ref, p_cur, K, 3.0, 2.0)
+        assert float(t @ t_true) > 0.9, seed
+        assert _angle_deg(R @ R_true.T) < 1.0, seed

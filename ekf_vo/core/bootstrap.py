@@ -239,8 +239,13 @@ def polish_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
     rotation by up to 0.24 deg, on two rendered ground robots away from the truth."""
     R0, t0 = refine_relative_pose(R, t, p_ref, p_cur, K, gate_px=gate_px,
                                   huber_px=huber_px)
-    best0 = robust_sampson_cost(R0, t0, p_ref, p_cur, K, gate_px, huber_px)
-    best = (best0, R0, t0)
+    r0 = np.abs(sampson_px(R0, t0, p_ref, p_cur, K))
+    near = r0 < gate_px
+    if np.count_nonzero(near) < 2 * _MIN_POINTS_ESSENTIAL:
+        return R0, t0                      # nothing to judge other starts by
+    var = max(float(np.mean(r0[near] ** 2)), _MIN_SAMPSON_VAR_PX2)
+    cost0 = robust_sampson_cost(R0, t0, p_ref, p_cur, K, gate_px, huber_px)
+    winner = None
     B = _tangent_basis(t0)
     for turn in _START_TURNS:
         for axis in range(2):
@@ -248,19 +253,23 @@ def polish_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
             R1, t1 = refine_relative_pose(R0, t_start / np.linalg.norm(t_start), p_ref,
                                           p_cur, K, gate_px=gate_px, huber_px=huber_px)
             cost = robust_sampson_cost(R1, t1, p_ref, p_cur, K, gate_px, huber_px)
-            if cost < best[0]:
-                best = (cost, R1, t1)
-    cost, R, t = best
-    r0 = sampson_px(R0, t0, p_ref, p_cur, K)
-    var = max(float(np.mean(r0[np.abs(r0) < gate_px] ** 2)), _MIN_SAMPSON_VAR_PX2) \
-        if np.any(np.abs(r0) < gate_px) else _MIN_SAMPSON_VAR_PX2
-    if R is R0 or 2.0 * (best0 - cost) / var < _BASIN_CHI2:
-        return R0, t0       # not another basin: the same one, polished a little further
-    # the Sampson cost cannot tell t from -t: the decomposition with the points in front
-    E = _skew(t) @ R
-    _, R, t, _ = cv2.recoverPose(E, p_ref, p_cur, K)
-    t = t.reshape(3)
-    return R, t / np.linalg.norm(t)
+            if 2.0 * (cost0 - cost) / var >= _BASIN_CHI2 and \
+                    (winner is None or cost < winner[0]):
+                winner = (cost, R1, t1)
+    if winner is None:
+        return R0, t0       # no other basin: at most the same one, polished further
+    _, R, t = winner
+    # the Sampson cost cannot tell t from -t (R moved continuously from RANSAC's model,
+    # whose decomposition was voted): the sign that puts most of the model's own inliers
+    # in front of the reference camera, depth from x2 ~ lambda R x1 + t
+    inl = np.abs(sampson_px(R, t, p_ref, p_cur, K)) < gate_px
+    K_inv = np.linalg.inv(K)
+    x1 = np.c_[p_ref[inl], np.ones(np.count_nonzero(inl))] @ K_inv.T
+    x2 = np.c_[p_cur[inl], np.ones(np.count_nonzero(inl))] @ K_inv.T
+    a, b = np.cross(x2, x1 @ R.T), np.cross(x2, t)
+    depth_sign = -np.einsum('ij,ij->i', a, b)
+    return (R, t) if np.count_nonzero(depth_sign > 0) >= np.count_nonzero(depth_sign < 0) \
+        else (R, -t)
 
 
 def common_tracks(ids_ref: np.ndarray, px_ref: np.ndarray, ids_cur: np.ndarray,

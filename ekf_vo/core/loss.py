@@ -41,6 +41,10 @@ class LossHandling:
         if good is None or good[2] >= stamp_ns:
             return
         self.ekf.x, self.ekf.P = good[0].copy(), good[1].copy()
+        if self.points is not None:
+            # in-filter points (map_refinement: filter) hold cross-covariances with the
+            # state just dropped; their tracks end with the loss anyway
+            self.points.clear()
         self.estimator.predict((stamp_ns - good[2]) * 1e-9)
 
     def _keep_anchor(self) -> None:

@@ -218,6 +218,7 @@ class VisualOdometry(Initialisation, LossHandling):
         try:
             inlier_rows = self._update(tracks, px, rows, X, sigma, rays)
         except (FilterError, np.linalg.LinAlgError) as exc:
+            self._roll_back(stamp_ns)      # the anchor of the next map: the last good state
             self.reset(f'filter failure: {exc}')
             res.state, res.message = self.state, f'lost: {exc}'
             return res
