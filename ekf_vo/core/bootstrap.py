@@ -225,9 +225,19 @@ def robust_sampson_cost(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
 def polish_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
                          p_cur: np.ndarray, K: np.ndarray, gate_px: float,
                          huber_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """`refine_relative_pose` from RANSAC's model and from translations turned away from
-    it; a turned start's model wins only if its robust cost is lower by more than chance
-    explains, and is then re-decomposed with the cheirality vote.
+    """`refine_relative_pose`, then `other_basin`: the model of the basin that fits."""
+    R0, t0 = refine_relative_pose(R, t, p_ref, p_cur, K, gate_px=gate_px,
+                                  huber_px=huber_px)
+    found = other_basin(R0, t0, p_ref, p_cur, K, gate_px, huber_px)
+    return (R0, t0) if found is None else found
+
+
+def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
+                K: np.ndarray, gate_px: float, huber_px: float
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+    """A polished model (R0, t0) polished again from translations turned away from it:
+    the model of another basin of the epipolar cost that fits the pixels better by more
+    than chance explains, or None.
 
     Why (docs/method.md §2.1.1): a camera moving forward has a second minimum of the
     epipolar cost, the translation turned sideways by 20-40 deg with a yaw or pitch of
@@ -237,12 +247,10 @@ def polish_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
     decrease over the residuals' variance passes chi-square 5 dof at 99.9 %. The other
     basin won by 115-147; the same basin polished further won by 0.1-8.7, moving the
     rotation by up to 0.24 deg, on two rendered ground robots away from the truth."""
-    R0, t0 = refine_relative_pose(R, t, p_ref, p_cur, K, gate_px=gate_px,
-                                  huber_px=huber_px)
     r0 = np.abs(sampson_px(R0, t0, p_ref, p_cur, K))
     near = r0 < gate_px
     if np.count_nonzero(near) < 2 * _MIN_POINTS_ESSENTIAL:
-        return R0, t0                      # nothing to judge other starts by
+        return None                        # nothing to judge other starts by
     var = max(float(np.mean(r0[near] ** 2)), _MIN_SAMPSON_VAR_PX2)
     cost0 = robust_sampson_cost(R0, t0, p_ref, p_cur, K, gate_px, huber_px)
     winner = None
@@ -257,11 +265,11 @@ def polish_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
                     (winner is None or cost < winner[0]):
                 winner = (cost, R1, t1)
     if winner is None:
-        return R0, t0       # no other basin: at most the same one, polished further
+        return None         # no other basin: at most the same one, polished further
     _, R, t = winner
-    # the Sampson cost cannot tell t from -t (R moved continuously from RANSAC's model,
-    # whose decomposition was voted): the sign that puts most of the model's own inliers
-    # in front of the reference camera, depth from x2 ~ lambda R x1 + t
+    # the Sampson cost cannot tell t from -t (R moved continuously from the voted
+    # decomposition): the sign that puts most of the model's own inliers in front of
+    # the reference camera, depth from x2 ~ lambda R x1 + t
     inl = np.abs(sampson_px(R, t, p_ref, p_cur, K)) < gate_px
     K_inv = np.linalg.inv(K)
     x1 = np.c_[p_ref[inl], np.ones(np.count_nonzero(inl))] @ K_inv.T
@@ -369,6 +377,30 @@ class TwoViewBootstrap:
             return self._refuse(pose, n_common=n_common, median_flow_px=flow)
         R, t, inl, n_e = pose
 
+        judged = self._judge_pose(ids, p_ref, p_cur, R, t, inl, n_e, n_common, flow,
+                                  baseline, min_parallax_deg, kept_share)
+        if not judged.ok:
+            return judged
+        # (f) Only for a pair that would be taken (it costs 8 polishes): is there another
+        # basin of the epipolar cost that fits better? Then that model is judged instead.
+        found = other_basin(R, t, p_ref, p_cur, self.K, _GATE_SCALE * thr,
+                            _HUBER_SCALE * thr)
+        if found is None:
+            return judged
+        R, t = found
+        logger.info('bootstrap: the relative pose moved to the other basin of the '
+                    'epipolar cost')
+        inl = np.abs(sampson_px(R, t, p_ref, p_cur, self.K)) < _GATE_SCALE * thr
+        return self._judge_pose(ids, p_ref, p_cur, R, t, inl, n_e, n_common, flow,
+                                baseline, min_parallax_deg, kept_share)
+
+    def _judge_pose(self, ids: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
+                    R: np.ndarray, t: np.ndarray, inl: np.ndarray, n_e: int,
+                    n_common: int, flow: float, baseline: float,
+                    min_parallax_deg: float | None, kept_share: float) -> BootstrapResult:
+        """Steps (c)-(e) of try_pair for the relative pose (R, t unit) with inliers
+        `inl`: triangulation, degeneracy and parallax gates, scale."""
+        cfg = self.cfg
         # (c) Triangulate the inliers (unit baseline; the scale is applied at the end,
         # all checks are scale-invariant).
         T_ref = np.eye(4)
@@ -462,7 +494,7 @@ class TwoViewBootstrap:
         # comes from five points only); the refined model then re-selects the inliers
         # with a gate of _GATE_SCALE thresholds, the triangulation checks decide the rest.
         gate = _GATE_SCALE * thr
-        R, t = polish_relative_pose(R, t, p_ref, p_cur, self.K, gate_px=gate,
+        R, t = refine_relative_pose(R, t, p_ref, p_cur, self.K, gate_px=gate,
                                     huber_px=_HUBER_SCALE * thr)
         inl = np.abs(sampson_px(R, t, p_ref, p_cur, self.K)) < gate
         return R, t, inl, n_e
