@@ -175,11 +175,13 @@ class VoConfig(_Params):
     accel_sigma: float = param(
         5.0, 'Linear acceleration impulse std: velocity noise a*dt per step (docs/method.md §3).',
         'm/s^2', 1e-6, 1e4, group='ekf')
-    accel_sigma_turn: float = param(
-        0.0, 'Linear acceleration impulse std added (in quadrature) per unit of '
-        '|omega x v|: a velocity that turns with the camera (a car, a robot, an orbit) '
-        'changes at that rate, which the constant world velocity does not model '
-        '(docs/method.md §3.2). 0: off.', '', 0.0, 100.0, group='ekf')
+    accel_sigma_per_speed: float = param(
+        0.0, 'Linear acceleration impulse std per unit of the speed over the bootstrap '
+        'pair: the noise is max(accel_sigma, this x that speed). The map\'s unit is the '
+        'bootstrap baseline, so an acceleration in m/s^2 means a different motion in '
+        'each map: a camera three times as fast bootstraps over a third of the time, at '
+        'three times the speed in map units, and turns its velocity nine times as fast '
+        '(docs/method.md §3.2). 0: accel_sigma alone.', '1/s', 0.0, 1e3, group='ekf')
     angular_accel_sigma: float = param(
         5.0, 'Angular acceleration impulse std: angular velocity noise alpha*dt per step.', 'rad/s^2', 1e-6, 1e4,
         group='ekf')

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import VoConfig
-from .ekf import ANG, VEL, CameraEKF
+from .ekf import VEL, CameraEKF
 from .observation import ReprojectionModel, whitening
 from .pnp import solve_epnp
 from .point_filter import PointFilter
@@ -79,17 +79,21 @@ class EkfEstimator:
     def __init__(self, cfg: VoConfig, ekf: CameraEKF) -> None:
         self.cfg, self.ekf = cfg, ekf
         self.settings = RansacSettings.from_config(cfg)
+        #: linear acceleration impulse std in this map's units [u/s^2] (set_map_speed)
+        self.accel_sigma = float(cfg.accel_sigma)
+
+    def set_map_speed(self, speed: float) -> None:
+        """A new map, in which the camera moved at `speed` [map units/s] over its
+        bootstrap pair: the acceleration noise is at least accel_sigma_per_speed times
+        that (docs/method.md §3.2). A map's unit is the bootstrap baseline, so an
+        acceleration in m/s^2 is a different motion in each map."""
+        c = self.cfg
+        self.accel_sigma = max(float(c.accel_sigma),
+                               float(c.accel_sigma_per_speed) * max(float(speed), 0.0))
 
     def predict(self, dt: float) -> None:
         c = self.cfg
-        sigma_a = c.accel_sigma
-        if c.accel_sigma_turn > 0:
-            # a velocity that turns with the camera (a car, a robot, an orbit) changes
-            # at |omega x v|, which a constant world velocity does not model
-            w_world = self.ekf.R_world_cam @ self.ekf.x[ANG]
-            turn = float(np.linalg.norm(np.cross(w_world, self.ekf.x[VEL])))
-            sigma_a = float(np.hypot(sigma_a, c.accel_sigma_turn * turn))
-        self.ekf.predict(dt, sigma_a, c.angular_accel_sigma, c.fading_memory,
+        self.ekf.predict(dt, self.accel_sigma, c.angular_accel_sigma, c.fading_memory,
                          c.stamp_sigma_s)
 
     def update(self, matches: FrameMatches, rng: np.random.Generator) -> UpdateOutcome:

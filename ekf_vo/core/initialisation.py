@@ -290,6 +290,7 @@ class Initialisation:
         c = self.cfg
         self.ekf.initialise(T_world_cur, v_world, w_cam, c.init_pose_sigma,
                             c.init_velocity_sigma, c.init_angular_velocity_sigma)
+        self.estimator.set_map_speed(float(np.linalg.norm(v_world)))
         self._published_cov = self.ekf.pose_covariance() + anchor[0]
         self._inflation = 1.0
         self.world_cov.last = (self._published_cov, T_world_cur[:3, 3].copy())
