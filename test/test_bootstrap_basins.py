@@ -18,6 +18,8 @@ from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.pipeline import VisualOdometry
 from ekf_vo.tools.synth import SynthConfig, render_sequence
 
+from .support.benchmarks import run_benchmark
+
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
 
@@ -111,3 +113,18 @@ def test_the_winning_model_keeps_the_translation_in_front_with_outliers() -> Non
         R, t = polish_relative_pose(R_true, turned, p_ref, p_cur, K, 3.0, 2.0)
         assert float(t @ t_true) > 0.9, seed
         assert _angle_deg(R @ R_true.T) < 1.0, seed
+
+
+def test_bench_bootstrap_pairs_reports_the_first_pair() -> None:
+    """`python -m bench.bootstrap_pairs`: one row per run, with the pair and a small
+    error on the rendered walk; a real sequence's name is refused in one line."""
+    proc = run_benchmark('bootstrap_pairs', '--sequences', 'walk', '--seeds', '0',
+                         timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    rows = [r for r in proc.stdout.splitlines() if r.startswith('| walk |')]
+    assert len(rows) == 1
+    cells = [c.strip() for c in rows[0].strip('|').split('|')]
+    assert cells[2].startswith('0-') and float(cells[3]) < 0.5
+    refused = run_benchmark('bootstrap_pairs', '--sequences', 'kitti_raw', timeout=120)
+    assert refused.returncode == 2
+    assert len(refused.stderr.strip().splitlines()) == 1 and 'kitti_raw' in refused.stderr
