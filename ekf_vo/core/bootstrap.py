@@ -62,10 +62,10 @@ _HUBER_SCALE = 2.0
 #: Fewest correspondences findEssentialMat accepts (five-point algorithm).
 _MIN_POINTS_ESSENTIAL = 5
 #: Turns of the translation [rad] at which the polish starts again, on either side and
-#: both axes across it (polish_relative_pose): 20 and 40 deg.
+#: both axes across it (other_basin): 20 and 40 deg.
 _START_TURNS = (np.radians(20.0), -np.radians(20.0), np.radians(40.0), -np.radians(40.0))
 #: A turned start's model replaces RANSAC's only if twice its cost decrease, over the
-#: Sampson residuals' variance, passes chi-square 5 dof at 99.9 % (polish_relative_pose)
+#: Sampson residuals' variance, passes chi-square 5 dof at 99.9 % (other_basin)
 _BASIN_CHI2 = 20.52
 #: floor of that variance [px^2] (noise-free pixels)
 _MIN_SAMPSON_VAR_PX2 = 0.01
@@ -220,16 +220,6 @@ def robust_sampson_cost(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
     a = np.minimum(np.abs(sampson_px(R, t, p_ref, p_cur, K)), gate_px)
     return float(np.sum(np.where(a <= huber_px, 0.5 * a ** 2,
                                  huber_px * a - 0.5 * huber_px ** 2)))
-
-
-def polish_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
-                         p_cur: np.ndarray, K: np.ndarray, gate_px: float,
-                         huber_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """`refine_relative_pose`, then `other_basin`: the model of the basin that fits."""
-    R0, t0 = refine_relative_pose(R, t, p_ref, p_cur, K, gate_px=gate_px,
-                                  huber_px=huber_px)
-    found = other_basin(R0, t0, p_ref, p_cur, K, gate_px, huber_px)
-    return (R0, t0) if found is None else found
 
 
 def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
