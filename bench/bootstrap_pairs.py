@@ -23,8 +23,9 @@ from ekf_vo.core import geometry as geo
 from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.map_uncertainty import relative_pose_covariance
 from ekf_vo.core.stream import VoStream
-from ekf_vo.tools.run import parse_overrides
+
 from . import rotation_nees
+from .common import overrides_or_report
 
 
 def _first_pair(camera: dict, frames, overrides: dict, seed: int):
@@ -79,10 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--seeds', nargs='+', type=int, default=list(range(8)))
     p.add_argument('--set', nargs='+', default=[], metavar='NAME=VALUE')
     args = p.parse_args(argv)
-    try:
-        overrides = parse_overrides(args.set)
-    except ValueError as exc:
-        print(f'bootstrap_pairs: {exc}', file=sys.stderr)
+    overrides = overrides_or_report(args.set, 'bootstrap_pairs')
+    if overrides is None:
         return 2
     for name in args.sequences:
         if rotation_nees._synthetic_name(name) is None:

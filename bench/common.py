@@ -41,6 +41,18 @@ def write_json(path: Path, data: Any) -> None:
     path.write_text(json.dumps(to_jsonable(data), indent=1))
 
 
+def overrides_or_report(items: list[str], prog: str) -> dict[str, Any] | None:
+    """`--set NAME=VALUE ...` as VoConfig overrides, or None after one line on stderr
+    (`prog: why`) for a malformed or unknown one."""
+    import sys
+    from ekf_vo.tools.run import parse_overrides
+    try:
+        return parse_overrides(items)
+    except ValueError as exc:
+        print(f'{prog}: {exc}', file=sys.stderr)
+        return None
+
+
 def pyplot(out: Path):
     """matplotlib.pyplot on the file-only Agg backend; creates `out` for the plots."""
     import matplotlib

@@ -44,9 +44,9 @@ from ekf_vo.core.stream import VoStream
 from ekf_vo.io.dataset import load_folder
 from ekf_vo.tools.consistency import rotation_nees
 from ekf_vo.tools.evaluate import evaluate
-from ekf_vo.tools.run import parse_overrides, run_bag
+from ekf_vo.tools.run import run_bag
 from . import stream_faults
-from .common import machine, shared_data, write_json
+from .common import machine, overrides_or_report, shared_data, write_json
 from .real_data import PRESETS
 
 #: rendered trajectories (ekf-vo-synth) and their length in frames (30 Hz): the ground
@@ -227,10 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--set', nargs='+', default=[], metavar='NAME=VALUE')
     p.add_argument('--json', type=Path)
     args = p.parse_args(argv)
-    try:
-        overrides = parse_overrides(args.set)
-    except ValueError as exc:
-        print(f'bench.rotation_nees: {exc}', file=sys.stderr)
+    overrides = overrides_or_report(args.set, 'bench.rotation_nees')
+    if overrides is None:
         return 2
     missing = [s for s in args.sequences if s.removesuffix('_from12') not in SEQUENCES
                and _synthetic_name(s) is None]
