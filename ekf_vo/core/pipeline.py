@@ -31,7 +31,7 @@ from . import geometry as geo
 from .bearing import BearingMeasurements, depth_spread_px2
 from .bootstrap import H_OVER_E_RATIO, TwoViewBootstrap
 from .camera import PinholeCamera
-from .ekf import ANG, POS, VEL, CameraEKF, FilterError
+from .ekf import POS, CameraEKF, FilterError
 from .estimators import FrameMatches, make_estimator
 from .features import FeatureTracker, Tracks
 from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
