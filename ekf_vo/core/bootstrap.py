@@ -64,6 +64,9 @@ _MIN_POINTS_ESSENTIAL = 5
 #: Turns of the translation [rad] at which the polish starts again, on either side and
 #: both axes across it (other_basin): 20 and 40 deg.
 _START_TURNS = (np.radians(20.0), -np.radians(20.0), np.radians(40.0), -np.radians(40.0))
+#: Gauss-Newton iterations a turned start gets before it is judged; one that is then
+#: below RANSAC's cost gets the full polish (the bootstrap frame's time, on a node at 30 Hz)
+_START_ITERATIONS = 3
 #: A turned start's model replaces RANSAC's only if twice its cost decrease, over the
 #: Sampson residuals' variance, passes chi-square 5 dof at 99.9 % (other_basin)
 _BASIN_CHI2 = 20.52
@@ -249,7 +252,12 @@ def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.nda
         for axis in range(2):
             t_start = t0 + math.tan(turn) * B[:, axis]
             R1, t1 = refine_relative_pose(R0, t_start / np.linalg.norm(t_start), p_ref,
-                                          p_cur, K, gate_px=gate_px, huber_px=huber_px)
+                                          p_cur, K, gate_px=gate_px, huber_px=huber_px,
+                                          iterations=_START_ITERATIONS)
+            R1, t1 = refine_relative_pose(R1, t1, p_ref, p_cur, K, gate_px=gate_px,
+                                          huber_px=huber_px) \
+                if robust_sampson_cost(R1, t1, p_ref, p_cur, K, gate_px, huber_px) < cost0 \
+                else (R1, t1)
             cost = robust_sampson_cost(R1, t1, p_ref, p_cur, K, gate_px, huber_px)
             if 2.0 * (cost0 - cost) / var >= _BASIN_CHI2 and \
                     (winner is None or cost < winner[0]):
