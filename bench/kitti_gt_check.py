@@ -25,6 +25,7 @@ from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.geometry import matrix_to_quat, quat_to_rotvec
 from ekf_vo.io.dataset import load_folder
 from .common import machine, shared_data, write_json
+from .rotation_nees import KITTI_GT_RELIABLE_FROM
 
 #: RANSAC threshold of the essential matrix [px], forward-backward KLT gate [px]
 _RANSAC_PX, _FB_PX = 0.5, 0.5
@@ -65,7 +66,8 @@ def check(split: int) -> dict:
         gt = np.array([r['gt_deg'] for r in part])
         diff = np.array([r['images_minus_gt_deg'] for r in part])
         out['stretches'].append({
-            'frames': f'{lo}-{hi}', 'gt_relative_rotation_std_deg': gt.std(axis=0),
+            'frames': f'{lo}-{hi}', 'n_pairs': len(part),
+            'gt_relative_rotation_std_deg': gt.std(axis=0),
             'summed_disagreement_deg': diff.sum(axis=0),
             'mean_abs_disagreement_deg': np.abs(diff).mean(axis=0)})
     return out
@@ -73,7 +75,7 @@ def check(split: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    p.add_argument('--split', type=int, default=12,
+    p.add_argument('--split', type=int, default=KITTI_GT_RELIABLE_FROM,
                    help='first frame after the stretch under suspicion')
     p.add_argument('--json', type=Path)
     args = p.parse_args(argv)
