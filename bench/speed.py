@@ -2,8 +2,10 @@
 
 640x480: the bundled demo bag (synthetic hand-held, 30 Hz). 1226x370: KITTI 06 f0-50 when
 ../shared/data is present. Times are wall-clock on this machine, single process.
+``--detect-threads 1`` runs the corner detection in the calling thread only, as releases
+before docs/method.md §17.8 did (the corners are the same; only the time differs).
 
-    python -m bench.speed [--repeat 3]
+    python -m bench.speed [--repeat 3] [--detect-threads 1]
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import time
 import numpy as np
 
 from ekf_vo.config import VoConfig
+from ekf_vo.core import features
 from ekf_vo.core.stream import VoStream
 from ekf_vo.tools.demo import load_demo_frames
 from .common import machine, shared_data
@@ -54,8 +57,13 @@ def time_core(info: dict, frames: list, cfg: VoConfig | None = None, repeat: int
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument('--detect-threads', type=int, choices=(1, 2), default=2,
+                        help='1: detection in the calling thread only (the release '
+                        'before docs/method.md §17.8)')
     args = parser.parse_args(argv)
-    print(f'machine: {machine()}')
+    if args.detect_threads == 1:
+        features._PARALLEL_MIN_CELLS = sys.maxsize
+    print(f'machine: {machine()}, detection on {args.detect_threads} thread(s)')
     runs = [('demo bag', load_demo_frames())]
     kitti = load_kitti_frames()
     if kitti is not None:

@@ -238,3 +238,29 @@ def test_kitti_frames_track_with_epipolar_consistency() -> None:
                                           prob=0.999, threshold=1.0)
             assert inl.mean() > 0.7
         prev = cur
+
+
+def test_detection_split_over_two_threads_finds_the_same_corners(monkeypatch) -> None:
+    """Half the cells go to a helper thread (docs/method.md §17.8): same corners, same
+    order, as one thread; and close() stops the helper without ending the tracker."""
+    import ekf_vo.core.features as features
+    frames = [shifted(0.0, 0.0), shifted(-40.0, 3.0), shifted(-90.0, 7.0)]
+
+    def run(min_cells: int) -> list[Tracks]:
+        monkeypatch.setattr(features, '_PARALLEL_MIN_CELLS', min_cells)
+        tr = FeatureTracker(VoConfig())
+        out = [tr.track(f) for f in frames]
+        assert (tr._pool is not None) == (min_cells <= VoConfig().grid_rows *
+                                          VoConfig().grid_cols)
+        tr.close()
+        assert tr._pool is None
+        out.append(tr.track(shifted(-120.0, 9.0)))      # works after close()
+        tr.close()
+        return out
+
+    one, two = run(10 ** 6), run(1)
+    for a, b in zip(one, two):
+        assert a.n_new == b.n_new
+        np.testing.assert_array_equal(a.ids, b.ids)
+        np.testing.assert_array_equal(a.px, b.px)
+    assert sum(t.n_new for t in one[1:]) > 0        # top-ups ran, not only the first frame

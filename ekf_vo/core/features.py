@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -57,6 +58,11 @@ _CELL_OVERSAMPLING = 2
 #: A second detection pass over the cells already at quota runs only when the first pass
 #: leaves more than this fraction of max_features undetected.
 _SECOND_PASS_FRACTION = 0.1
+#: Cells are split between the calling thread and one helper thread when at least this
+#: many need a detection: OpenCV's Shi-Tomasi runs on one core and releases the GIL, so
+#: the two halves run at once on two cores (docs/method.md §17.8); below it, the hand-off
+#: costs more than it saves.
+_PARALLEL_MIN_CELLS = 4
 
 
 @dataclass
@@ -139,7 +145,14 @@ class FeatureTracker:
             else None
         self._next_id = 0
         self._stats = TrackerStats()
+        self._pool: ThreadPoolExecutor | None = None
         self.reset()
+
+    def close(self) -> None:
+        """Stop the detection helper thread (the tracker still works: it restarts it)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
 
     # ------------------------------------------------------------------ public API
 
@@ -471,11 +484,29 @@ class FeatureTracker:
                       xs: np.ndarray, want: np.ndarray, found: list[np.ndarray]) -> None:
         """Shi-Tomasi in every cell k with want[k] > 0; corners (image px) into found[k].
 
-        The loop runs over grid cells (24 by default), not over features.
+        The loop runs over grid cells (24 by default), not over features. Every other
+        cell goes to a helper thread (`_PARALLEL_MIN_CELLS`); each cell's result depends
+        on its own pixels only, so the corners are the same as in one thread.
         """
+        cells = [int(k) for k in np.flatnonzero(want > 0)]
+        if len(cells) >= _PARALLEL_MIN_CELLS:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=1,
+                                                thread_name_prefix='ekf_vo_detect')
+            helper = self._pool.submit(self._detect_in, cells[1::2], gray, mask, ys, xs,
+                                       want, found)
+            self._detect_in(cells[0::2], gray, mask, ys, xs, want, found)
+            helper.result()
+        else:
+            self._detect_in(cells, gray, mask, ys, xs, want, found)
+
+    def _detect_in(self, cells: list[int], gray: np.ndarray, mask: np.ndarray,
+                   ys: np.ndarray, xs: np.ndarray, want: np.ndarray,
+                   found: list[np.ndarray]) -> None:
+        """Shi-Tomasi in the given cells (found[k] written for each k, nothing else)."""
         cols = xs.shape[0] - 1
-        for k in np.flatnonzero(want > 0):
-            r, c = divmod(int(k), cols)
+        for k in cells:
+            r, c = divmod(k, cols)
             y0, y1, x0, x1 = ys[r], ys[r + 1], xs[c], xs[c + 1]
             if y1 - y0 < 8 or x1 - x0 < 8:
                 continue

@@ -48,6 +48,9 @@ class FrameResult:
     variance_factor: float = 1.0            #: windowed NIS / dof
     found_share: float = 1.0                #: inliers / map points the prior put in view
     message: str = ''                       #: why not ok / what happened
+    #: wall-clock ms of the stages this frame ran: predict, track (KLT and detection),
+    #: detect (the detection alone, a part of track), update, map, local_map, refind,
+    #: bootstrap, and total (the whole frame, measured on its own)
     timings_ms: dict = field(default_factory=dict)
     track_ids: np.ndarray | None = None     #: (n,) for debug drawing
     track_px: np.ndarray | None = None      #: (n,2) raw pixels

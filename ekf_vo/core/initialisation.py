@@ -46,7 +46,8 @@ class Initialisation:
         """Front end of a frame before tracking: tracks, their ideal pixels, a result."""
         t = time.perf_counter()
         tracks = self.tracker.track(gray)
-        timings = {'track': (time.perf_counter() - t) * 1e3}
+        timings = {'track': (time.perf_counter() - t) * 1e3,
+                   'detect': self.tracker.stats.detect_ms}     # a part of 'track'
         px = self.camera.undistort(tracks.px)
         res = FrameResult(stamp_ns, TrackingState.INITIALISING, n_tracks=len(tracks),
                           timings_ms=timings, track_ids=tracks.ids, track_px=tracks.px)

@@ -127,11 +127,12 @@ class VisualOdometry(Initialisation, LossHandling):
             self.multiview.reset()
 
     def close(self) -> None:
-        """Stop the worker threads (adjustment, rotation check); a running job finishes
-        and its result is dropped. The estimator is not used after this."""
+        """Stop the worker threads (adjustment, rotation check, detection); a running job
+        finishes and its result is dropped. The estimator is not used after this."""
         if self.local_map is not None:
             self.local_map.close(wait=False)
         self._rotation_job.close()
+        self.tracker.close()
 
     def reset(self, reason: str = 'requested') -> None:
         """Drop the map and re-bootstrap; keep the world frame at the last good pose."""
@@ -203,6 +204,7 @@ class VisualOdometry(Initialisation, LossHandling):
         tracks = self.tracker.track(gray, predicted)
         px = self.camera.undistort(tracks.px)
         timings['track'] = (time.perf_counter() - t) * 1e3
+        timings['detect'] = self.tracker.stats.detect_ms     # a part of 'track'
 
         t = time.perf_counter()
         has_point, X = self.map.lookup(tracks.ids)
