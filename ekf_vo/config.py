@@ -139,8 +139,16 @@ class VoConfig(_Params):
         'the rotation of a pair at the smaller gate can be degrees off (§15.9).', 'deg',
         0.1, 45.0, group='bootstrap')
     orientation_only_max_px: float = param(
-        3.0, 'A track agrees with a rotation-only fit within this distance.', 'px', 0.1,
-        50.0, group='bootstrap')
+        3.0, 'A track agrees with a rotation-only fit within this distance (or within '
+        'orientation_only_max_deg, whichever is larger).', 'px', 0.1, 50.0,
+        group='bootstrap')
+    orientation_only_max_deg: float = param(
+        0.32, 'A track agrees with a rotation-only fit within this angle (or within '
+        'orientation_only_max_px, whichever is larger): the few centimetres a hand-held '
+        'camera moves while it turns leave an angle between the rays whatever the '
+        'resolution; 0.32 deg is 2.9 px at a 525 px focal length, 5.0 px at 900 px '
+        '(docs/method.md §15.9).',
+        'deg', 0.0, 10.0, group='bootstrap')
     unknown_position_sigma: float = param(
         1000.0, 'Std published for a position (and linear velocity, per second) that '
         'nothing measures: orientation-only poses.', 'm', 1.0, 1e9, group='bootstrap')

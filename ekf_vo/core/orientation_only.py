@@ -159,12 +159,16 @@ class OrientationChain:
     """The orientation of the frames before a map (module docstring)."""
 
     def __init__(self, camera: PinholeCamera, sigma_px: float, max_px: float,
-                 translation_sigma_deg: float, rng: np.random.Generator) -> None:
+                 translation_sigma_deg: float, rng: np.random.Generator,
+                 max_deg: float = 0.0) -> None:
         self.unproject = camera.unproject        # ideal pixels -> unit bearings
         self.focal = 0.5 * float(camera.fx + camera.fy)
         # a residual holds the pixel noise of both frames
         self.sigma_rad = np.sqrt(2.0) * float(sigma_px) / self.focal
-        self.max_rad = float(max_px) / self.focal
+        # a track agrees with a rotation within max_px of pixel noise, or within max_deg
+        # of the ray angle a hand-held camera's few centimetres leave: in pixels alone,
+        # a long focal length would take that angle for a translation (§15.9)
+        self.max_rad = max(float(max_px) / self.focal, float(np.radians(max_deg)))
         #: the rotation an undetected translation can pass for (module docstring)
         self.model_sigma_rad = float(np.radians(translation_sigma_deg))
         self.rng = rng

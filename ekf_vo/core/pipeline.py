@@ -96,7 +96,8 @@ class VisualOdometry(Initialisation, LossHandling):
         # that it does not move the draws of the estimator's RANSACs
         self.orientation = OrientationChain(
             camera, cfg.pixel_sigma_px, cfg.orientation_only_max_px,
-            cfg.orientation_only_translation_sigma_deg, np.random.default_rng([seed, 15, 9])) \
+            cfg.orientation_only_translation_sigma_deg, np.random.default_rng([seed, 15, 9]),
+            max_deg=cfg.orientation_only_max_deg) \
             if cfg.orientation_before_map and cfg.bootstrap == 'two_view' else None
         self._reset_state()
 
