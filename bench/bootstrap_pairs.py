@@ -55,10 +55,10 @@ def _first_pair(camera: dict, frames, overrides: dict, seed: int):
 
 def measure(name: str, seed: int, overrides: dict | None = None) -> dict:
     """The first bootstrap pair of one rendered sequence against its ground truth."""
-    trajectory, speedup, still, fault = rotation_nees._synthetic_name(name)
+    trajectory, speedup, still, fault, camera = rotation_nees._synthetic_name(name)
     overrides = overrides or {}
     gt_s, gt_T, pair = rotation_nees._synthetic(trajectory, seed, overrides, speedup, still,
-                                                fault, run=_first_pair)
+                                                fault, run=_first_pair, camera=camera)
     if pair is None:
         return {'sequence': name, 'seed': seed, 'pair': None}
     s_ref, s_cur, T_ref, T_cur, X, K = pair

@@ -21,9 +21,12 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   (every second or third frame, stamped 1/30 s apart), as a 15 or 10 Hz camera sees the
   same motion (docs/method.md §15.11). With ``_still`` (``walk_still``): the camera
   stands for 1 s before it moves (its first view 30 times, with fresh sensor noise), as
-  a robot waits when the node starts (§15.12). With ``_repeat``, ``_jitter`` or
-  ``_flicker`` (``orbit_repeat``, ``walk_x3_jitter``): what a camera driver does to the
-  stream (bench/stream_faults.py).
+  a robot waits when the node starts (§15.12). With a camera suffix (``_hd``,
+  ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy``, ``_ss2``, ``_blur``:
+  ``handheld_rotation_hd``, see CAMERAS): the same motion seen through another lens or
+  sensor (docs/method.md §15.13). With ``_repeat``, ``_jitter`` or ``_flicker``
+  (``orbit_repeat``, ``walk_x3_jitter``): what a camera driver does to the stream
+  (bench/stream_faults.py).
 
     python -m bench.rotation_nees [--sequences ...] [--seeds 0 1 2] [--set NAME=VALUE ...]
                                   [--json OUT]
@@ -120,35 +123,50 @@ def _run_stream(camera: dict, frames, overrides: dict, seed: int):
             np.array(located, bool))
 
 
+#: the rendered sequences through other cameras (a name's suffix: SynthConfig fields);
+#: the renders are 640x480 at a 525 px focal length (62 deg across), no lens distortion
+CAMERAS = {
+    'hd': {'width': 1280, 'height': 720, 'fx': 900.0},  # 1280x720, 71 deg across
+    'narrow': {'fx': 900.0},                            # 640x480, 39 deg across
+    'wide': {'fx': 320.0},                              # 640x480, 90 deg across
+    'fisheye': {'distortion': (-0.28, 0.07, 0.0, 0.0, 0.0)},    # a wide-angle webcam
+    'barrel': {'distortion': (-0.1, 0.01, 0.001, -0.001, 0.0)},  # mild, decentred
+    'noisy': {'noise_px': 5.0},                         # 5 grey levels (2 rendered)
+    'ss2': {'supersample': 2},                          # anti-aliased texture
+    'blur': {'blur': 4.0},                              # 4 px of motion blur
+}
 #: frames the camera of a ``_still`` sequence stands before it moves (1 s at 30 Hz)
 STILL_FRAMES = 30
 #: the standing camera's fresh sensor noise [grey levels]
 STILL_NOISE = 2.0
 
 
-def _synthetic_name(name: str) -> tuple[str, int, int, str] | None:
-    """(trajectory, speed-up, frames standing first, stream fault or '') of a rendered
-    sequence's name ('orbit', 'orbit_x3', 'walk_still', 'orbit_repeat'), or None for a
-    real one."""
+def _synthetic_name(name: str) -> tuple[str, int, int, str, str] | None:
+    """(trajectory, speed-up, frames standing first, stream fault or '', camera or '')
+    of a rendered sequence's name ('orbit', 'orbit_x3', 'walk_still', 'orbit_repeat',
+    'handheld_rotation_hd'), or None for a real one."""
     fault = next((f for f in stream_faults.FAULTS if name.endswith('_' + f)), '')
     name = name.removesuffix('_' + fault) if fault else name
+    camera = next((c for c in CAMERAS if name.endswith('_' + c)), '')
+    name = name.removesuffix('_' + camera) if camera else name
     still = STILL_FRAMES if name.endswith('_still') else 0
     name = name.removesuffix('_still')
     trajectory, _, factor = name.partition('_x')
     if name in SYNTHETIC:
-        return name, 1, still, fault
+        return name, 1, still, fault, camera
     if trajectory in SYNTHETIC and factor in ('2', '3'):
-        return trajectory, int(factor), still, fault
+        return trajectory, int(factor), still, fault, camera
     return None
 
 
 def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
-               still: int = 0, fault: str = '', run=None):
+               still: int = 0, fault: str = '', run=None, camera: str = ''):
     """Render a sequence (ground-truth stamps [s] and T_world_cam) and feed it to
-    `run(camera, frames, overrides, seed)` (default: _run_stream), whose result is
-    returned third."""
+    `run(camera info, frames, overrides, seed)` (default: _run_stream), whose result is
+    returned third. `camera`: a CAMERAS variant ('' the renders' own)."""
     from ekf_vo.tools.synth import SynthConfig, render_sequence
-    scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory)
+    scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory,
+                       **CAMERAS.get(camera, {}))
     seq = list(render_sequence(scfg))
     dt = seq[1][0] - seq[0][0]
     if speedup > 1:            # every k-th frame, at the renderer's frame interval
@@ -162,11 +180,11 @@ def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
         seq = standing + [(t + still * dt, im, T) for t, im, T in seq]
     if fault:
         seq = stream_faults.apply(fault, seq, seed)
-    camera = {'width': scfg.width, 'height': scfg.height, 'K': scfg.K(), 'D': scfg.D(),
-              'distortion_model': 'plumb_bob'}
+    info = {'width': scfg.width, 'height': scfg.height, 'K': scfg.K(), 'D': scfg.D(),
+            'distortion_model': 'plumb_bob'}
     gt_s = np.array([s for s, _, _ in seq]) * 1e-9
     gt_T = np.array([T for _, _, T in seq])
-    return gt_s, gt_T, (run or _run_stream)(camera, ((s, im, None) for s, im, _ in seq),
+    return gt_s, gt_T, (run or _run_stream)(info, ((s, im, None) for s, im, _ in seq),
                                             overrides, seed)
 
 
@@ -175,8 +193,9 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
     start = 0.0
     base = name.removesuffix('_from12')
     if _synthetic_name(base) is not None:
-        trajectory, speedup, still, fault = _synthetic_name(base)
-        gt_s, gt_T, out = _synthetic(trajectory, seed, overrides, speedup, still, fault)
+        trajectory, speedup, still, fault, camera = _synthetic_name(base)
+        gt_s, gt_T, out = _synthetic(trajectory, seed, overrides, speedup, still, fault,
+                                     camera=camera)
     elif base == 'demo':
         from ekf_vo.io.bag import read_ground_truth
         s = run_bag(REPO / 'bags' / 'demo', overrides=overrides, seed=seed)

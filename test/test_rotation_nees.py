@@ -92,3 +92,14 @@ def test_kitti_ground_truth_turns_at_a_constant_rate_the_images_contradict():
     per_pair_rest = np.abs(rest['summed_disagreement_deg'][1:]) / rest['n_pairs']
     assert np.all(per_pair_first > 3 * per_pair_rest)
     assert np.all(np.abs(first['summed_disagreement_deg'][1:]) > 0.3)
+
+
+def test_the_bench_names_a_rendered_sequence_through_another_camera():
+    from bench import rotation_nees as bench
+    assert bench._synthetic_name('handheld_rotation_hd') == \
+        ('handheld_rotation', 1, 0, '', 'hd')
+    assert bench._synthetic_name('ground_robot_x3_still_fisheye_jitter') == \
+        ('ground_robot', 3, bench.STILL_FRAMES, 'jitter', 'fisheye')
+    assert bench._synthetic_name('orbit') == ('orbit', 1, 0, '', '')
+    assert bench._synthetic_name('kitti_raw') is None
+    assert bench._synthetic_name('orbit_fisheye_x2') is None   # suffixes in their order
