@@ -405,3 +405,53 @@ def test_a_sharp_hand_held_camera_publishes_its_orientation_throughout():
     first = published.index(True)
     assert first <= 20
     assert all(published[first:])
+
+
+def test_a_translation_the_bootstrap_never_confirms_is_taken_back():
+    """docs/method.md §15.13. Fits against the reference fail for 0.3 s while every
+    frame-to-frame step is a rotation: a translation is declared and nothing is
+    published. When the bootstrap then refuses every pair as a rotation for 1 s, the
+    chain goes on from its stepped orientation, which holds the true one; one pair with
+    parallax (not rotation-like) confirms the translation for good."""
+    from ekf_vo.core.orientation_only import (TRANSLATION_FAILED_FOR_S,
+                                              TRANSLATION_UNCONFIRMED_S, OrientationChain)
+    ids = np.arange(300)
+    base_rng = np.random.default_rng(7)
+    px_ref = base_rng.uniform((20, 20), (620, 460), (300, 2))
+    z = np.where(ids < 150, 1.0, 10.0)                  # a near and a far half
+    X = np.column_stack(((px_ref - K[:2, 2]) / K[0, 0], np.ones(300))) * z[:, None]
+    dt = 33_333_333
+
+    def frame(k, rng):
+        R = geo.quat_to_matrix(geo.rotvec_to_quat(np.radians([0.0, 0.2 * k, 0.0])))
+        Xc = X @ R.T + np.array([0.004 * k, 0.0, 0.0])  # 4 mm a frame, sideways
+        return R, Xc[:, :2] / Xc[:, 2:] * K[0, 0] + K[:2, 2] + rng.normal(0, 0.2, (300, 2))
+
+    def run(rotation_like):
+        """rotation_like(k, declared): the bootstrap's verdict at frame k."""
+        rng = np.random.default_rng(8)
+        chain = OrientationChain(CAMERA, 1.0, 3.0, 0.5, rng)
+        chain.new_reference(chain.track(0, ids, px_ref))
+        declared, back = None, None
+        for k in range(1, 60):
+            R, px = frame(k, rng)
+            est = chain.track(k * dt, ids, px)
+            chain.judge_pair(est, float('nan'))
+            if chain.translation_seen and declared is None:
+                declared = k
+            got = chain.reconsider(rotation_like(k, declared))
+            if got is not None:
+                back = (k, R, got)
+                break
+        return chain, declared, back
+
+    chain, declared, back = run(lambda k, declared: True)
+    assert declared is not None and declared * dt * 1e-9 >= TRANSLATION_FAILED_FOR_S
+    k, R, got = back
+    assert (k - declared) * dt * 1e-9 >= TRANSLATION_UNCONFIRMED_S - 1e-9
+    assert not chain.translation_seen
+    d = geo.quat_to_rotvec(geo.matrix_to_quat(R @ got.R_world_cam))   # R_world_cam = R^T
+    assert d @ np.linalg.solve(got.cov_world, d) < 16.27
+    # one pair with parallax after the declaration: the translation is real, and stays
+    chain, _, back = run(lambda k, declared: declared is None or k != declared + 5)
+    assert back is None and chain.translation_seen

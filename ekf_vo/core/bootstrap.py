@@ -115,6 +115,8 @@ class BootstrapResult:
     median_flow_px: float = 0.0
     h_over_e: float = float('nan')
     triangulation: TriangulationResult | None = None
+    #: refused as a rotation: a homography explains the tracks at little parallax
+    rotation_like: bool = False
 
 
 def _se3(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -427,7 +429,7 @@ class TwoViewBootstrap:
             return self._refuse(
                 f'pure rotation / insufficient parallax: the homography explains '
                 f'{100 * h_over_e:.0f}% of the essential inliers and the median parallax '
-                f'is {med_par:.2f} deg < {min_par:.2f} deg', **common)
+                f'is {med_par:.2f} deg < {min_par:.2f} deg', rotation_like=True, **common)
         if med_par < min_par:
             waiting = min_parallax_deg is None and \
                 med_par >= self.parallax_gate(h_over_e, lasting=False)

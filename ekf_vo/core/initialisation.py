@@ -104,6 +104,9 @@ class Initialisation:
                 # (an arbitrary essential matrix gives 15-40 deg with few of them)
                 sound = boot.n_inliers >= self.cfg.bootstrap_min_inliers
                 chain.judge_pair(est, boot.median_parallax_deg if sound else float('nan'))
+                if not boot.ok:
+                    # a translation the bootstrap never confirms was a turn (§15.13)
+                    est = chain.reconsider(boot.rotation_like) or est
             if boot.ok and strict:
                 boot = self._against_chain(boot, est)
             if boot.ok:

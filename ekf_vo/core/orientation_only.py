@@ -41,7 +41,9 @@ from one that turns (`judge_pair`): a translation across the view passes for a r
 about t/d and gives the bootstrap pair a parallax of about t/d, while a turn's pair has
 next to none; and a robot driving off forward leaves its frames unexplained for longer
 than a turn's edge does. Once seen, the chain's orientation is not published any more
-and the bootstrap is not held to it (docs/method.md §15.9).
+and the bootstrap is not held to it (docs/method.md §15.9), unless failed fits alone
+declared it and the bootstrap then refuses every pair as a rotation for a second
+(`reconsider`, §15.13).
 """
 from __future__ import annotations
 
@@ -76,6 +78,14 @@ TRANSLATION_MIN_PARALLAX_DEG = 0.5
 #: parallax is not one either). A turn's failures at the image's edge are brief:
 #: at most 0.1 s on the rendered hand-held camera (8 seeds)
 TRANSLATION_FAILED_FOR_S = 0.3
+#: ... unless the bootstrap does not confirm it: a translation declared from failed fits
+#: alone, after which the bootstrap made no map for this long [s] and refused every pair
+#: as a rotation (a homography explains it at little parallax), was a turn whose fits the
+#: few centimetres of a hand-held camera broke at the image's edges (a wide lens, near
+#: objects): the chain goes on from the orientation stepped on frame by frame. A robot
+#: that drives off shows parallax to the bootstrap (its map came 5-44 frames after the
+#: rule, on the rendered walk, orbit and ground robot that stand first)
+TRANSLATION_UNCONFIRMED_S = 1.0
 
 
 def kabsch(b_from: np.ndarray, b_to: np.ndarray) -> np.ndarray:
@@ -189,8 +199,12 @@ class OrientationChain:
         self._carried: tuple[int | None, Orientation | None] = (None, None)
         self.n_references = 0          #: references taken after the first
         #: a bootstrap pair has shown the chain's rotation to be a translation (sticky
-        #: until the next restart: a camera seen to translate is not turning in place)
+        #: until the next restart: a camera seen to translate is not turning in place),
+        #: or failed fits have (taken back by `reconsider` if the bootstrap never agrees)
         self.translation_seen = False
+        #: stamp at which failed fits alone declared translation_seen, while no bootstrap
+        #: pair has confirmed it (None: not so declared, or confirmed)
+        self._unconfirmed_since_ns: int | None = None
         #: stamp of the first of the frames just tracked that no fit explained
         self.failing_since_ns: int | None = None
 
@@ -265,6 +279,8 @@ class OrientationChain:
         if est is None and self.failing_since_ns is not None and self._prev is not None \
                 and (self._prev_stamp_ns - self.failing_since_ns) * 1e-9 >= \
                 TRANSLATION_FAILED_FOR_S:
+            if not self.translation_seen:
+                self._unconfirmed_since_ns = self._prev_stamp_ns
             self.translation_seen = True
             return
         ref = self.reference
@@ -277,6 +293,28 @@ class OrientationChain:
         lo, hi = TRANSLATION_PARALLAX_RATIO
         if lo * turn <= parallax_deg <= hi * turn:
             self.translation_seen = True
+
+    def reconsider(self, rotation_like: bool) -> Orientation | None:
+        """After a bootstrap pair was refused: a translation that failed fits alone
+        declared, and that the bootstrap has not confirmed for TRANSLATION_UNCONFIRMED_S
+        (no map, every pair refused as a rotation: `rotation_like`), is taken back. The
+        frame just tracked becomes the chain's reference at its stepped orientation
+        (each step a rotation fit with a translation prior), which is returned, to be
+        published; None when nothing is taken back (docs/method.md §15.13)."""
+        if self._unconfirmed_since_ns is None:
+            return None
+        if not rotation_like:
+            self._unconfirmed_since_ns = None       # parallax: the translation is real
+            return None
+        cur = self._prev
+        if (self._prev_stamp_ns - self._unconfirmed_since_ns) * 1e-9 < \
+                TRANSLATION_UNCONFIRMED_S or cur is None or cur.stepped is None:
+            return None
+        self._prev = _Frame(cur.ids, cur.b, cur.stepped, cur.stepped)
+        self._ref = self._last_good = self._prev
+        self.translation_seen = False
+        self._unconfirmed_since_ns = self.failing_since_ns = None
+        return cur.stepped
 
     def carried(self) -> Orientation | None:
         """For publishing only: the orientation of the frame just tracked when its fit
