@@ -330,11 +330,16 @@ def _median_per_point(err: np.ndarray, pt_idx: np.ndarray, m: int) -> np.ndarray
 def point_covariances(X_world: np.ndarray, T_cam_world_views: list[np.ndarray],
                       K: np.ndarray, sigma_px: float) -> np.ndarray:
     """Covariance (n,3,3) of points triangulated from views at known, exact poses:
-    the inverse of the summed Gauss-Newton information of their reprojections."""
+    the inverse of the summed Gauss-Newton information of their reprojections. A view
+    is one pose (4,4) for every point, or one per point (n,4,4)."""
     X = np.asarray(X_world, float).reshape(-1, 3)
     H = np.zeros((len(X), 3, 3))
     for T in T_cam_world_views:
-        R = T[:3, :3]
-        J = pinhole_project(X @ R.T + T[:3, 3], K)[2] @ R / sigma_px
+        R = T[..., :3, :3]
+        if R.ndim == 2:
+            J = pinhole_project(X @ R.T + T[:3, 3], K)[2] @ R / sigma_px
+        else:
+            X_cam = np.einsum('nij,nj->ni', R, X) + T[:, :3, 3]
+            J = pinhole_project(X_cam, K)[2] @ R / sigma_px
         H += np.transpose(J, (0, 2, 1)) @ J
     return inverse_information_3x3(H, _INFO_REGULARISER)

@@ -17,7 +17,7 @@ from . import geometry as geo
 from .camera import PinholeCamera
 from .local_ba import point_covariances
 from .map import LandmarkMap
-from .triangulation import triangulate_points
+from .triangulation import triangulate_points_from
 
 
 class MapGrowth:
@@ -141,26 +141,31 @@ class MapGrowth:
         parallax = np.degrees(np.arccos(cos))
         ready = parallax >= c.triangulation_min_parallax_deg
         frames = np.array([self._frame[int(i)] for i in ids])
+        rows = np.flatnonzero(ready)
+        if len(rows) == 0:
+            return 0
+        # all the ready candidates at once, in the order of their first frames (the
+        # order in which they enter the map); one DLT per first frame (§17.8)
+        rows = rows[np.argsort(frames[rows], kind='stable')]
+        sel_ids = ids[rows]
+        first_frames, first = np.unique(frames[rows], return_inverse=True)
+        T_world_then = [self._T_world_cam_at[int(f)] for f in first_frames]
+        px_then = np.array([self._px[int(i)] for i in sel_ids])
         T_cam_world_now = geo.invert_T(T_world_cam)
-        n_added = 0
-        for f in np.unique(frames[ready]):
-            sel = ready & (frames == f)
-            sel_ids = ids[sel]
-            px_then = np.array([self._px[int(i)] for i in sel_ids])
-            T_then = self._T_world_cam_at[int(f)]
-            tri = triangulate_points(
-                geo.invert_T(T_then), T_cam_world_now, px_then, px[cand_rows[sel]],
-                self.camera.K, c.triangulation_max_reproj_px, c.triangulation_min_parallax_deg)
-            good = tri.valid
-            landmarks.add(sel_ids[good], tri.X_world[good], frame_index,
-                          cov=self.two_view_covariances(tri.X_world[good], T_then,
-                                                        T_world_cam), anchor=anchor)
-            n_added += int(np.count_nonzero(good))
-            for tid in sel_ids[good]:
-                self.drop(int(tid))
-            # a track that fails with a wide baseline is unreliable: stop trying
-            hopeless = ~good & (parallax[sel] > 3 * c.triangulation_min_parallax_deg)
-            for tid in sel_ids[hopeless]:
-                self.drop(int(tid))
-                self.banned.add(int(tid))
-        return n_added
+        tri = triangulate_points_from(
+            [geo.invert_T(T) for T in T_world_then], first, T_cam_world_now, px_then,
+            px[cand_rows[rows]], self.camera.K, c.triangulation_max_reproj_px,
+            c.triangulation_min_parallax_deg)
+        good = tri.valid
+        T_cam_world_then = np.stack([geo.invert_T(T) for T in T_world_then])[first[good]]
+        cov = point_covariances(tri.X_world[good], [T_cam_world_then, T_cam_world_now],
+                                self.camera.K, c.pixel_sigma_px)
+        landmarks.add(sel_ids[good], tri.X_world[good], frame_index, cov=cov, anchor=anchor)
+        for tid in sel_ids[good].tolist():
+            self.drop(tid)
+        # a track that fails with a wide baseline is unreliable: stop trying
+        hopeless = ~good & (parallax[rows] > 3 * c.triangulation_min_parallax_deg)
+        for tid in sel_ids[hopeless].tolist():
+            self.drop(tid)
+            self.banned.add(tid)
+        return int(np.count_nonzero(good))

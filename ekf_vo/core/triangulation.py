@@ -124,6 +124,48 @@ def triangulate_points(T_cam1_world: np.ndarray, T_cam2_world: np.ndarray,
         return TriangulationResult(np.empty((0, 3)), np.empty(0, bool), e, e.copy(),
                                    e.copy(), e.copy())
 
+    X, finite = _dlt(T1, T2, px1, px2, K)
+    C1 = -T1[:3, :3].T @ T1[:3, 3]
+    return _checked(X, finite, project(T1, X, K), C1, T2, px1, px2, K, max_reproj_px,
+                    min_parallax_deg, min_depth)
+
+
+def triangulate_points_from(T_cam1_world: list[np.ndarray], first: np.ndarray,
+                            T_cam2_world: np.ndarray, px1: np.ndarray, px2: np.ndarray,
+                            K: np.ndarray, max_reproj_px: float, min_parallax_deg: float,
+                            min_depth: float = DEFAULT_MIN_DEPTH) -> TriangulationResult:
+    """`triangulate_points` of N correspondences whose first views differ: point i was
+    seen first by the camera T_cam1_world[first[i]], and now by T_cam2_world. The same
+    DLT per first view, and the same checks, in one pass over all the points (map
+    growth triangulates the candidates of several frames at once, docs/method.md
+    §17.8)."""
+    T2 = _check_pose(T_cam2_world, 'T_cam2_world')
+    T1s = np.stack([_check_pose(T, 'T_cam1_world') for T in T_cam1_world]) \
+        if len(T_cam1_world) else np.zeros((0, 4, 4))
+    K = np.asarray(K, np.float64)
+    px1 = np.asarray(px1, np.float64).reshape(-1, 2)
+    px2 = np.asarray(px2, np.float64).reshape(-1, 2)
+    first = np.asarray(first, np.int64).reshape(-1)
+    if px1.shape != px2.shape or first.shape[0] != px1.shape[0]:
+        raise ValueError(f'px1 {px1.shape}, px2 {px2.shape} and first {first.shape} differ')
+    X = np.full((px1.shape[0], 3), np.nan)
+    finite = np.zeros(px1.shape[0], bool)
+    for v in np.unique(first).tolist():
+        rows = first == v
+        X[rows], finite[rows] = _dlt(T1s[v], T2, px1[rows], px2[rows], K)
+    R1, t1 = T1s[first, :3, :3], T1s[first, :3, 3]
+    X_cam = np.einsum('nij,nj->ni', R1, X) + t1
+    z1 = X_cam[:, 2]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        proj1 = (X_cam[:, :2] / z1[:, None] @ K[:2, :2].T + K[:2, 2], z1)
+    C1 = -np.einsum('nji,nj->ni', R1, t1)
+    return _checked(X, finite, proj1, C1, T2, px1, px2, K, max_reproj_px, min_parallax_deg,
+                    min_depth)
+
+
+def _dlt(T1: np.ndarray, T2: np.ndarray, px1: np.ndarray, px2: np.ndarray, K: np.ndarray
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """DLT points (n,3) (NaN where not finite or at infinity) and whether each is finite."""
     # Normalised coordinates: x = K^-1 [u v 1]^T (H&Z sec. 4.4.4 conditioning).
     K_inv = np.linalg.inv(K)
     x1 = px1 @ K_inv[:2, :2].T + K_inv[:2, 2]
@@ -141,9 +183,18 @@ def triangulate_points(T_cam1_world: np.ndarray, T_cam2_world: np.ndarray,
         X = (Xh[:3] / np.where(at_inf, np.nan, w)).T
     finite = finite_in & ~at_inf & np.isfinite(X).all(axis=1)
     X[~finite] = np.nan
+    return X, finite
 
+
+def _checked(X: np.ndarray, finite: np.ndarray, proj1: tuple[np.ndarray, np.ndarray],
+             C1: np.ndarray, T2: np.ndarray, px1: np.ndarray, px2: np.ndarray,
+             K: np.ndarray, max_reproj_px: float, min_parallax_deg: float,
+             min_depth: float) -> TriangulationResult:
+    """The validity checks of the module docstring, given the points' projection into
+    their first view (px, depth) and its centre C1 ((3,) or one per point (n,3))."""
+    n = X.shape[0]
     # Cheirality: in front of both cameras.
-    px1_hat, z1 = project(T1, X, K)
+    px1_hat, z1 = proj1
     px2_hat, z2 = project(T2, X, K)
     in_front = finite & (z1 > min_depth) & (z2 > min_depth)
 
@@ -154,7 +205,6 @@ def triangulate_points(T_cam1_world: np.ndarray, T_cam2_world: np.ndarray,
     err = np.where(in_front & np.isfinite(err), err, np.inf)
 
     # Parallax: angle between the rays from the centres C = -R^T t to X.
-    C1 = -T1[:3, :3].T @ T1[:3, 3]
     C2 = -T2[:3, :3].T @ T2[:3, 3]
     r1 = X - C1
     r2 = X - C2
