@@ -293,6 +293,7 @@ class OrientationChain:
         lo, hi = TRANSLATION_PARALLAX_RATIO
         if lo * turn <= parallax_deg <= hi * turn:
             self.translation_seen = True
+            self._unconfirmed_since_ns = None       # a pair confirms it: not taken back
 
     def reconsider(self, rotation_like: bool) -> Orientation | None:
         """After a bootstrap pair was refused: a translation that failed fits alone
