@@ -83,8 +83,8 @@ TRANSLATION_FAILED_FOR_S = 0.3
 #: as a rotation (a homography explains it at little parallax), was a turn whose fits the
 #: few centimetres of a hand-held camera broke at the image's edges (a wide lens, near
 #: objects): the chain goes on from the orientation stepped on frame by frame. A robot
-#: that drives off shows parallax to the bootstrap (its map came 5-44 frames after the
-#: rule, on the rendered walk, orbit and ground robot that stand first)
+#: that drives off shows parallax to the bootstrap (its map came 1-45 frames after the
+#: rule, on the rendered walk, orbit and ground robot that stand first, and the drone)
 TRANSLATION_UNCONFIRMED_S = 1.0
 
 
