@@ -149,16 +149,15 @@ class MapGrowth:
         rows = rows[np.argsort(frames[rows], kind='stable')]
         sel_ids = ids[rows]
         first_frames, first = np.unique(frames[rows], return_inverse=True)
-        T_world_then = [self._T_world_cam_at[int(f)] for f in first_frames]
+        T_cam_world_then = [geo.invert_T(self._T_world_cam_at[int(f)]) for f in first_frames]
         px_then = np.array([self._px[int(i)] for i in sel_ids])
         T_cam_world_now = geo.invert_T(T_world_cam)
         tri = triangulate_points_from(
-            [geo.invert_T(T) for T in T_world_then], first, T_cam_world_now, px_then,
-            px[cand_rows[rows]], self.camera.K, c.triangulation_max_reproj_px,
-            c.triangulation_min_parallax_deg)
+            T_cam_world_then, first, T_cam_world_now, px_then, px[cand_rows[rows]],
+            self.camera.K, c.triangulation_max_reproj_px, c.triangulation_min_parallax_deg)
         good = tri.valid
-        T_cam_world_then = np.stack([geo.invert_T(T) for T in T_world_then])[first[good]]
-        cov = point_covariances(tri.X_world[good], [T_cam_world_then, T_cam_world_now],
+        cov = point_covariances(tri.X_world[good],
+                                [np.stack(T_cam_world_then)[first[good]], T_cam_world_now],
                                 self.camera.K, c.pixel_sigma_px)
         landmarks.add(sel_ids[good], tri.X_world[good], frame_index, cov=cov, anchor=anchor)
         for tid in sel_ids[good].tolist():
