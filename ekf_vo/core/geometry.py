@@ -182,7 +182,9 @@ def invert_T(T: np.ndarray) -> np.ndarray:
 
 
 def transform_points(T: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 rigid transform to (N,3) points."""
+    """Apply a 4x4 rigid transform to (N,3) points, or (N,4,4) transforms, one per point."""
+    if T.ndim == 3:
+        return np.einsum('nij,nj->ni', T[:, :3, :3], X) + T[:, :3, 3]
     return X @ T[:3, :3].T + T[:3, 3]
 
 

@@ -335,11 +335,6 @@ def point_covariances(X_world: np.ndarray, T_cam_world_views: list[np.ndarray],
     X = np.asarray(X_world, float).reshape(-1, 3)
     H = np.zeros((len(X), 3, 3))
     for T in T_cam_world_views:
-        R = T[..., :3, :3]
-        if R.ndim == 2:
-            J = pinhole_project(X @ R.T + T[:3, 3], K)[2] @ R / sigma_px
-        else:
-            X_cam = np.einsum('nij,nj->ni', R, X) + T[:, :3, 3]
-            J = pinhole_project(X_cam, K)[2] @ R / sigma_px
+        J = pinhole_project(geo.transform_points(T, X), K)[2] @ T[..., :3, :3] / sigma_px
         H += np.transpose(J, (0, 2, 1)) @ J
     return inverse_information_3x3(H, _INFO_REGULARISER)

@@ -38,6 +38,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from . import geometry as geo
+
 logger = logging.getLogger(__name__)
 
 #: Minimum depth (in the map's length unit) for the cheirality check.
@@ -82,11 +84,12 @@ def _check_pose(T: np.ndarray, name: str) -> np.ndarray:
 
 def project(T_cam_world: np.ndarray, X_world: np.ndarray, K: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray]:
-    """Pinhole projection of world points (no distortion).
+    """Pinhole projection of world points (no distortion), by one camera (4, 4) or by one
+    camera per point (N, 4, 4).
 
     Returns (px (N, 2) ideal pixels, depth (N,) z in the camera frame).
     """
-    X_cam = X_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    X_cam = geo.transform_points(T_cam_world, X_world)
     z = X_cam[:, 2]
     with np.errstate(divide='ignore', invalid='ignore'):
         uv = X_cam[:, :2] / z[:, None]
@@ -153,14 +156,10 @@ def triangulate_points_from(T_cam1_world: list[np.ndarray], first: np.ndarray,
     for v in np.unique(first).tolist():
         rows = first == v
         X[rows], finite[rows] = _dlt(T1s[v], T2, px1[rows], px2[rows], K)
-    R1, t1 = T1s[first, :3, :3], T1s[first, :3, 3]
-    X_cam = np.einsum('nij,nj->ni', R1, X) + t1
-    z1 = X_cam[:, 2]
-    with np.errstate(divide='ignore', invalid='ignore'):
-        proj1 = (X_cam[:, :2] / z1[:, None] @ K[:2, :2].T + K[:2, 2], z1)
-    C1 = -np.einsum('nji,nj->ni', R1, t1)
-    return _checked(X, finite, proj1, C1, T2, px1, px2, K, max_reproj_px, min_parallax_deg,
-                    min_depth)
+    T1 = T1s[first]
+    C1 = -np.einsum('nji,nj->ni', T1[:, :3, :3], T1[:, :3, 3])
+    return _checked(X, finite, project(T1, X, K), C1, T2, px1, px2, K, max_reproj_px,
+                    min_parallax_deg, min_depth)
 
 
 def _dlt(T1: np.ndarray, T2: np.ndarray, px1: np.ndarray, px2: np.ndarray, K: np.ndarray
