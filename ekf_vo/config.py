@@ -76,6 +76,11 @@ class VoConfig(_Params):
         'that time and jerk its velocity. Further repeats are processed: a noise-free '
         'simulated camera standing still. 0: never skip (docs/ros.md).', 'count', 0, 1000,
         group='front end')
+    rolling_shutter_s: float = param(
+        0.0, 'Rolling shutter: the time the sensor takes from its first row to its last '
+        '(the stamp taken as the middle row\'s). Tracked pixels are moved to the stamp\'s '
+        'time by the predicted rotation (docs/method.md §15.14). 0: a global shutter.',
+        's', 0.0, 1.0, group='front end')
     klt_window_px: int = param(21, 'KLT search window side.', 'px', 5, 101, group='front end')
     klt_pyramid_levels: int = param(
         4, 'KLT pyramid levels (more levels follow faster motion).', 'count', 0, 8,

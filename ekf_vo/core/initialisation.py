@@ -16,6 +16,8 @@ import numpy as np
 from . import geometry as geo
 from .features import Tracks
 from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
+from .orientation_only import fit_rotation
+from .rolling_shutter import rotation_to_stamp_time
 
 #: chi-square 3 dof, 99 %: a bootstrap rotation the orientation chain contradicts
 _CHI2_3DOF_99 = 11.34
@@ -37,8 +39,17 @@ class _Reference:
     n_shared: int = 0
 
 
+#: a rolling shutter's rate fit before the map first accepts bearings this many times
+#: farther from a rotation than the chain does (rolling_shutter.py)
+RATE_FIT_LOOSENESS = 5.0
+
+
 class Initialisation:
     """The bootstrap methods of VisualOdometry (see the module docstring)."""
+
+    #: the camera's rotation rate before the map (camera frame, rad/s) over the last
+    #: frame step: a rolling shutter's rows are brought to the stamp with it
+    _initialising_rate = np.zeros(3)
 
     # ------------------------------------------------------------------ bootstrap
     def _track_initialising(self, gray: np.ndarray, stamp_ns: int
@@ -49,15 +60,57 @@ class Initialisation:
         timings = {'track': (time.perf_counter() - t) * 1e3,
                    'detect': self.tracker.stats.detect_ms}     # a part of 'track'
         px = self.camera.undistort(tracks.px)
+        if self.cfg.rolling_shutter_s > 0.0:
+            px = self._initialising_to_stamp_time(tracks, px, stamp_ns)
         res = FrameResult(stamp_ns, TrackingState.INITIALISING, n_tracks=len(tracks),
                           timings_ms=timings, track_ids=tracks.ids, track_px=tracks.px)
         return tracks, px, res
+
+    def _initialising_to_stamp_time(self, tracks: Tracks, px: np.ndarray, stamp_ns: int
+                                    ) -> np.ndarray:
+        """Before the map, a rolling shutter's rows are brought to the stamp's time by
+        the rotation alone (rolling_shutter.py, docs/method.md §15.14), at the rate of
+        the step from the last frame: fitted to this frame's pixels corrected at the
+        last step's rate (a hand-held camera's rate changes within a few frames), or
+        that rate when the step has no rotation fit."""
+        c, rows_px = self.cfg, tracks.px[:, 1]
+        moved = rotation_to_stamp_time(px, rows_px, self._initialising_rate,
+                                       c.rolling_shutter_s, self.camera.height, self.camera.K)
+        prev = self._last_initialising
+        if prev is None or self.orientation is None:
+            return moved
+        _, i_prev, i_cur = np.intersect1d(prev[1], tracks.ids, assume_unique=True,
+                                          return_indices=True)
+        dt = (stamp_ns - prev[0]) * 1e-9
+        if not dt > 0.0:
+            return moved
+        chain = self.orientation
+        b_prev = self.camera.unproject(prev[2][i_prev])
+        rng = np.random.default_rng([self.frame_index, 15, 14])
+        # first with a loose threshold (the skew left at the last step's rate can be
+        # many pixels), then at the chain's own on the pixels that rate corrects
+        for max_rad in (RATE_FIT_LOOSENESS * chain.max_rad, chain.max_rad):
+            fit = fit_rotation(b_prev, self.camera.unproject(moved[i_cur]), chain.sigma_rad,
+                               max_rad, rng)
+            if fit is None:
+                break
+            self._initialising_rate = \
+                geo.quat_to_rotvec(geo.matrix_to_quat(fit.R_cur_ref.T)) / dt
+            moved = rotation_to_stamp_time(px, rows_px, self._initialising_rate,
+                                           c.rolling_shutter_s, self.camera.height,
+                                           self.camera.K)
+        return moved
 
     def _initialise(self, gray: np.ndarray, stamp_ns: int,
                     known_T: np.ndarray | None) -> FrameResult:
         tracks, px, res = self._track_initialising(gray, stamp_ns)
         timings = res.timings_ms
         prev, self._last_initialising = self._last_initialising, (stamp_ns, tracks.ids, px)
+        if self.cfg.rolling_shutter_s > 0.0 and prev is None and known_T is None:
+            # a rolling shutter's first frame keeps its skew (no turn rate yet): a
+            # reference made of it would show the skew as parallax in every later pair
+            res.message = 'bootstrap: rolling shutter, the first frame only gives the turn rate'
+            return res
         chain = self.orientation if known_T is None else None
         est = None if chain is None else chain.track(stamp_ns, tracks.ids, px)
         ref = self._ref

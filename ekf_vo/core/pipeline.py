@@ -31,7 +31,7 @@ from . import geometry as geo
 from .bearing import BearingMeasurements, depth_spread_px2
 from .bootstrap import H_OVER_E_RATIO, TwoViewBootstrap
 from .camera import PinholeCamera
-from .ekf import POS, CameraEKF, FilterError
+from .ekf import ANG, POS, VEL, CameraEKF, FilterError
 from .estimators import FrameMatches, make_estimator
 from .features import FeatureTracker, Tracks
 from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
@@ -47,6 +47,8 @@ from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigma
 from .orientation_only import OrientationChain
 from .refind import MapPointFinder
 from .relocalise import Relocaliser
+from .rolling_shutter import (points_on_rays, rotation_to_stamp_time,
+                              translation_to_stamp_time)
 from .rotation_check import KeyframeRotationJudge
 from .point_filter import PointFilter
 
@@ -111,6 +113,7 @@ class VisualOdometry(Initialisation, LossHandling):
         self._ref = None                # the bootstrap's reference frame (initialisation.py)
         self._last_initialising = None  # (stamp, ids, ideal px) of the last such frame
         self._orientation_published = False
+        self._initialising_rate = np.zeros(3)
         if self.orientation is not None:
             self.orientation.restart(self._anchor_T_world_cam[:3, :3],
                                      self.world_cov.carried_covariance[3:, 3:])
@@ -209,6 +212,8 @@ class VisualOdometry(Initialisation, LossHandling):
 
         t = time.perf_counter()
         has_point, X = self.map.lookup(tracks.ids)
+        if c.rolling_shutter_s > 0.0:
+            px = self._to_stamp_time(tracks, px, has_point, X)
         rows = np.flatnonzero(has_point)
         if len(rows) > c.max_update_points:
             keep = np.sort(self.rng.choice(len(rows), c.max_update_points, replace=False))
@@ -266,6 +271,24 @@ class VisualOdometry(Initialisation, LossHandling):
             self._prev_ids = np.union1d(self._prev_ids, found)
             timings['refind'] = (time.perf_counter() - t) * 1e3
         return res
+
+    def _to_stamp_time(self, tracks: Tracks, px: np.ndarray, has_point: np.ndarray,
+                       X: np.ndarray) -> np.ndarray:
+        """A rolling shutter's tracked pixels, each row brought to the stamp's time by
+        the prior's motion (rolling_shutter.py, docs/method.md §15.14): the rotation for
+        every track, the translation at the map point's depth, or, for a track without
+        one, at the median depth of the map in view."""
+        c, K, T = self.cfg, self.camera.K, self.ekf.T_world_cam
+        rows_px = tracks.px[:, 1]
+        px = rotation_to_stamp_time(px, rows_px, self.ekf.x[ANG], c.rolling_shutter_s,
+                                    self.camera.height, K)
+        depth = geo.median_depth(X, T)
+        if depth is None:
+            return px
+        X_all = points_on_rays(px, K, T, depth)
+        X_all[has_point] = X
+        return translation_to_stamp_time(px, rows_px, X_all, T, self.ekf.x[VEL],
+                                         c.rolling_shutter_s, self.camera.height, K)
 
     def _judge(self, res: FrameResult, n_found: float, n_in_view: int) -> bool:
         """Failed frames and loss (docs/method.md §7.4), then the online consistency

@@ -44,6 +44,8 @@ __all__ = ['EPOCH_NS', 'TRAJECTORIES', 'Scene', 'make_scene', 'undistort_pixels'
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 """Stamp of frame 0 (fixed so output is reproducible)."""
+ROLLING_SHUTTER_BANDS = 32
+"""Bands of rows a rolling-shutter frame is rendered in (SynthConfig.rolling_shutter_s)."""
 
 
 # =========================================================================== sequences
@@ -68,6 +70,9 @@ class SynthConfig:
     encoding: str = 'mono8'          # or 'bgr8'
     start_ns: int = EPOCH_NS
     ppm: float = 256.0               # texture texels per metre
+    #: rolling shutter: the time from the first row's exposure to the last's [s]; the
+    #: stamp (and the ground truth) is the middle row's. 0: a global shutter
+    rolling_shutter_s: float = 0.0
 
     def K(self) -> np.ndarray:
         """3x3 intrinsic matrix."""
@@ -126,14 +131,37 @@ class SequenceRenderer:
         """T_world_cam of frame ``k``."""
         return trajectory_pose(self.cfg.trajectory, k / self.cfg.rate, self.cfg.seed)
 
-    def render_clean(self, T_world_cam: np.ndarray) -> np.ndarray:
-        """Noise- and blur-free (but distorted, if configured) image at a pose."""
-        img, _ = self.renderer.render(T_world_cam)
+    def render_clean(self, T_world_cam: np.ndarray, k: int | None = None) -> np.ndarray:
+        """Noise- and blur-free (but distorted, if configured) image at a pose; with a
+        rolling shutter and the frame index `k`, each band of rows at its own time."""
+        if k is not None and self.cfg.rolling_shutter_s > 0:
+            img = self._render_rolling(k)
+        else:
+            img, _ = self.renderer.render(T_world_cam)
         if self._ss > 1:
             img = cv2.resize(img, self._canvas, interpolation=cv2.INTER_AREA)
         if self._map is not None:
             img = cv2.remap(img, self._map[0], self._map[1], cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_REPLICATE)
+        return img
+
+    def _render_rolling(self, k: int) -> np.ndarray:
+        """Frame k through a rolling shutter: ROLLING_SHUTTER_BANDS bands of rows of the
+        ideal image, each rendered at the pose of its middle row's time (the stamp is the
+        middle row's). Between bands the image jumps by the motion over one band's
+        readout (at 100 deg/s and 30 ms, 0.1 deg); with lens distortion, a row of the
+        ideal image stands for the sensor row it lands on."""
+        rows = self.renderer.height
+        bands = np.linspace(0, rows, ROLLING_SHUTTER_BANDS + 1).round().astype(int)
+        img = None
+        for b0, b1 in zip(bands[:-1], bands[1:]):
+            dt = ((b0 + b1) / 2.0 / rows - 0.5) * self.cfg.rolling_shutter_s
+            T = trajectory_pose(self.cfg.trajectory, k / self.cfg.rate + dt, self.cfg.seed)
+            band, _ = self.renderer.render(T, rows=(int(b0), int(b1)))
+            if img is None:
+                img = band
+            else:
+                img[b0:b1] = band[b0:b1]
         return img
 
     def _blur_kernel(self, k: int) -> np.ndarray | None:
@@ -162,7 +190,7 @@ class SequenceRenderer:
     def frame(self, k: int) -> tuple[int, np.ndarray, np.ndarray]:
         """``(stamp_ns, image uint8, T_world_cam)`` of frame ``k``."""
         T = self.pose(k)
-        img = self.render_clean(T)
+        img = self.render_clean(T, k)
         ker = self._blur_kernel(k)
         if ker is not None:
             img = cv2.filter2D(img, -1, ker, borderType=cv2.BORDER_REPLICATE)
@@ -283,6 +311,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--noise-px', type=float, default=2.0,
                    help='Gaussian intensity noise sigma (grey levels)')
     p.add_argument('--blur', type=float, default=0.0, help='motion-blur kernel length (px)')
+    p.add_argument('--rolling-shutter-ms', type=float, default=0.0,
+                   help='rolling shutter: readout time from the first row to the last (ms; '
+                   'the stamp is the middle row\'s); 0: a global shutter')
     p.add_argument('--distortion', type=float, nargs=5, metavar=('K1', 'K2', 'P1', 'P2', 'K3'),
                    default=None, help='plumb_bob distortion applied to the images')
     p.add_argument('--supersample', type=int, default=1, help='anti-aliasing factor')
@@ -318,7 +349,8 @@ def check_args(args: argparse.Namespace) -> None:
                           ('--supersample', args.supersample)):
         if value is not None and not (value > 0 and math.isfinite(value)):
             raise UsageError(f'{option} must be positive, got {value}')
-    for option, value in (('--noise-px', args.noise_px), ('--blur', args.blur)):
+    for option, value in (('--noise-px', args.noise_px), ('--blur', args.blur),
+                          ('--rolling-shutter-ms', args.rolling_shutter_ms)):
         if not (value >= 0 and math.isfinite(value)):
             raise UsageError(f'{option} must be >= 0, got {value}')
     if not 1 <= args.jpeg_quality <= 100:
@@ -352,7 +384,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                       rate=args.rate, frames=args.frames, seed=args.seed,
                       trajectory=args.trajectory, noise_px=args.noise_px, blur=args.blur,
                       distortion=tuple(args.distortion) if args.distortion else None,
-                      supersample=args.supersample, encoding=args.encoding)
+                      supersample=args.supersample, encoding=args.encoding,
+                      rolling_shutter_s=args.rolling_shutter_ms * 1e-3)
     if args.stats:
         print(trajectory_stats(cfg.trajectory, cfg.frames / cfg.rate, cfg.seed))
     res = write_bag(cfg, args.out_bag, raw=not args.compressed_only,

@@ -317,11 +317,13 @@ class Renderer:
         self.quad_origins = np.array([q.origin for q in scene.quads])
         self.quad_double = np.array([q.double_sided for q in scene.quads])
 
-    def render(self, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, T_world_cam: np.ndarray, rows: tuple[int, int] | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
         """Render the view of camera pose ``T_world_cam``.
 
         Returns ``(image uint8 (H, W) or (H, W, 3), inverse_depth float32 (H, W))``,
         inverse depth = 1/z of the optical-frame z (0 where nothing was drawn).
+        ``rows``: draw only image rows [first, last) (a rolling shutter's band).
         """
         T_cam_world = np.linalg.inv(np.asarray(T_world_cam, dtype=np.float64))
         R, t = T_cam_world[:3, :3], T_cam_world[:3, 3]
@@ -354,8 +356,8 @@ class Renderer:
             pix = uvw[:, :2] / uvw[:, 2:3]
             x0 = max(int(math.floor(pix[:, 0].min())) - 1, 0)
             x1 = min(int(math.ceil(pix[:, 0].max())) + 2, W)
-            y0 = max(int(math.floor(pix[:, 1].min())) - 1, 0)
-            y1 = min(int(math.ceil(pix[:, 1].max())) + 2, H)
+            y0 = max(int(math.floor(pix[:, 1].min())) - 1, 0 if rows is None else rows[0])
+            y1 = min(int(math.ceil(pix[:, 1].max())) + 2, H if rows is None else rows[1])
             if x1 <= x0 or y1 <= y0:
                 continue
             # mip level from the texel footprint at the mean depth of the clipped tile
