@@ -22,7 +22,7 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   same motion (docs/method.md §15.11). With ``_still`` (``walk_still``): the camera
   stands for 1 s before it moves (its first view 30 times, with fresh sensor noise), as
   a robot waits when the node starts (§15.12). With a camera suffix (``_hd``,
-  ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy``, ``_ss2``, ``_blur``, ``_rs``:
+  ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy``, ``_ss2``, ``_blur``, ``_rs`` (30 ms), ``_rs10``:
   ``handheld_rotation_hd``, see CAMERAS): the same motion seen through another lens or
   sensor (docs/method.md §15.13). With ``_repeat``, ``_jitter`` or ``_flicker``
   (``orbit_repeat``, ``walk_x3_jitter``): what a camera driver does to the stream
@@ -135,6 +135,7 @@ CAMERAS = {
     'ss2': {'supersample': 2},                          # anti-aliased texture
     'blur': {'blur': 4.0},                              # 4 px of motion blur
     'rs': {'rolling_shutter_s': 0.03},                  # a webcam's 30 ms readout
+    'rs10': {'rolling_shutter_s': 0.01},                # a phone camera's 10 ms
 }
 #: frames the camera of a ``_still`` sequence stands before it moves (1 s at 30 Hz)
 STILL_FRAMES = 30
