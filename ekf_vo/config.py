@@ -79,7 +79,9 @@ class VoConfig(_Params):
     rolling_shutter_s: float = param(
         0.0, 'Rolling shutter: the time the sensor takes from its first row to its last '
         '(the stamp taken as the middle row\'s). Tracked pixels are moved to the stamp\'s '
-        'time by the predicted rotation (docs/method.md §15.14). 0: a global shutter.',
+        'time by the predicted motion: the rotation, and the translation at the map\'s '
+        'depths (docs/method.md §15.14). Set it from the sensor\'s datasheet: a wrong '
+        'value is as bad as none. 0: a global shutter.',
         's', 0.0, 1.0, group='front end')
     klt_window_px: int = param(21, 'KLT search window side.', 'px', 5, 101, group='front end')
     klt_pyramid_levels: int = param(

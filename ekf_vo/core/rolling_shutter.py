@@ -17,8 +17,9 @@ EKF's state):
     translation  X_cam(t + dt) = X_cam(t) - dt R_cw v: f v dt / depth pixels, undone
                  at the map point's depth (or, without one, at the map's median depth).
 
-Before the map there is no filter: the rotation alone is undone there, at the rate the
-orientation chain measured over the last frame pair.
+Before the map there is no filter: the rotation alone is undone there, at the rate of
+the step from the last frame fitted to this frame's own tracks
+(initialisation.Initialisation._initialising_to_stamp_time).
 """
 from __future__ import annotations
 
