@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from ekf_vo.core import geometry as geo
+from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.rolling_shutter import (points_on_rays, row_time_offsets_s,
                                          rotation_to_stamp_time, translation_to_stamp_time)
 from ekf_vo.tools.synth import SynthConfig, SequenceRenderer, main as synth_main
@@ -12,6 +13,8 @@ from ekf_vo.tools.synth_scene import trajectory_pose
 
 K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
 H = 480
+CAMERA = PinholeCamera.from_camera_info({'width': 640, 'height': H, 'K': K, 'D': np.zeros(5),
+                                         'distortion_model': 'plumb_bob'})
 
 
 def _project(T_world_cam, X):
@@ -44,22 +47,22 @@ def test_a_moving_cameras_rows_are_brought_back_to_the_stamp(seed):
     seen = _rolling_shutter_pixels(T0, omega, v, X, 0.03)
     rows = seen[:, 1]
     assert np.max(np.abs(seen - at_stamp)) > 5.0           # the effect is pixels
-    derotated = rotation_to_stamp_time(seen, rows, omega, 0.03, H, K)
-    back = translation_to_stamp_time(derotated, rows, X, T0, v, 0.03, H, K)
+    derotated = rotation_to_stamp_time(seen, rows, omega, 0.03, CAMERA)
+    back = translation_to_stamp_time(derotated, rows, X, T0, v, 0.03, CAMERA)
     assert np.max(np.abs(back - at_stamp)) < 1e-3
     # at a depth that is only a guess, the translation is undone in part
-    guessed = points_on_rays(derotated, K, T0, 4.0)
-    partly = translation_to_stamp_time(derotated, rows, guessed, T0, v, 0.03, H, K)
+    guessed = points_on_rays(derotated, CAMERA, T0, 4.0)
+    partly = translation_to_stamp_time(derotated, rows, guessed, T0, v, 0.03, CAMERA)
     assert np.median(np.abs(partly - at_stamp)) < np.median(np.abs(derotated - at_stamp))
 
 
 def test_a_global_shutter_or_a_still_camera_keeps_its_pixels():
     px = np.array([[10.0, 20.0], [300.0, 470.0]])
-    assert np.array_equal(rotation_to_stamp_time(px, px[:, 1], np.ones(3), 0.0, H, K), px)
-    assert np.array_equal(rotation_to_stamp_time(px, px[:, 1], np.zeros(3), 0.03, H, K), px)
-    X = points_on_rays(px, K, np.eye(4), 3.0)
+    assert np.array_equal(rotation_to_stamp_time(px, px[:, 1], np.ones(3), 0.0, CAMERA), px)
+    assert np.array_equal(rotation_to_stamp_time(px, px[:, 1], np.zeros(3), 0.03, CAMERA), px)
+    X = points_on_rays(px, CAMERA, np.eye(4), 3.0)
     assert np.array_equal(translation_to_stamp_time(px, px[:, 1], X, np.eye(4), np.zeros(3),
-                                                    0.03, H, K), px)
+                                                    0.03, CAMERA), px)
     assert np.allclose(_project(np.eye(4), X), px)
 
 

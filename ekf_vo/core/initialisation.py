@@ -75,7 +75,7 @@ class Initialisation:
         that rate when the step has no rotation fit."""
         c, rows_px = self.cfg, tracks.px[:, 1]
         moved = rotation_to_stamp_time(px, rows_px, self._initialising_rate,
-                                       c.rolling_shutter_s, self.camera.height, self.camera.K)
+                                       c.rolling_shutter_s, self.camera)
         prev = self._last_initialising
         if prev is None or self.orientation is None:
             return moved
@@ -97,8 +97,7 @@ class Initialisation:
             self._initialising_rate = \
                 geo.quat_to_rotvec(geo.matrix_to_quat(fit.R_cur_ref.T)) / dt
             moved = rotation_to_stamp_time(px, rows_px, self._initialising_rate,
-                                           c.rolling_shutter_s, self.camera.height,
-                                           self.camera.K)
+                                           c.rolling_shutter_s, self.camera)
         return moved
 
     def _initialise(self, gray: np.ndarray, stamp_ns: int,

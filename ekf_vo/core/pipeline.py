@@ -278,17 +278,16 @@ class VisualOdometry(Initialisation, LossHandling):
         the prior's motion (rolling_shutter.py, docs/method.md §15.14): the rotation for
         every track, the translation at the map point's depth, or, for a track without
         one, at the median depth of the map in view."""
-        c, K, T = self.cfg, self.camera.K, self.ekf.T_world_cam
+        c, cam, T = self.cfg, self.camera, self.ekf.T_world_cam
         rows_px = tracks.px[:, 1]
-        px = rotation_to_stamp_time(px, rows_px, self.ekf.x[ANG], c.rolling_shutter_s,
-                                    self.camera.height, K)
+        px = rotation_to_stamp_time(px, rows_px, self.ekf.x[ANG], c.rolling_shutter_s, cam)
         depth = geo.median_depth(X, T)
         if depth is None:
             return px
-        X_all = points_on_rays(px, K, T, depth)
+        X_all = points_on_rays(px, cam, T, depth)
         X_all[has_point] = X
         return translation_to_stamp_time(px, rows_px, X_all, T, self.ekf.x[VEL],
-                                         c.rolling_shutter_s, self.camera.height, K)
+                                         c.rolling_shutter_s, cam)
 
     def _judge(self, res: FrameResult, n_found: float, n_in_view: int) -> bool:
         """Failed frames and loss (docs/method.md §7.4), then the online consistency

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import geometry as geo
+from .camera import PinholeCamera
 
 
 def row_time_offsets_s(rows_px: np.ndarray, height: int, readout_s: float) -> np.ndarray:
@@ -33,45 +34,34 @@ def row_time_offsets_s(rows_px: np.ndarray, height: int, readout_s: float) -> np
     return (np.asarray(rows_px, float) / max(height - 1, 1) - 0.5) * float(readout_s)
 
 
-def _project(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:
-    return np.column_stack((K[0, 0] * X_cam[:, 0] / X_cam[:, 2] + K[0, 2],
-                            K[1, 1] * X_cam[:, 1] / X_cam[:, 2] + K[1, 2]))
-
-
-def _rays(K: np.ndarray, px_ideal: np.ndarray) -> np.ndarray:
-    return np.column_stack(((px_ideal[:, 0] - K[0, 2]) / K[0, 0],
-                            (px_ideal[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(px_ideal))))
-
-
 def rotation_to_stamp_time(px_ideal: np.ndarray, rows_px: np.ndarray, omega_cam: np.ndarray,
-                           readout_s: float, height: int, K: np.ndarray) -> np.ndarray:
+                           readout_s: float, camera: PinholeCamera) -> np.ndarray:
     """Ideal pixels (n,2) seen on the raw rows `rows_px` (n,), moved to where the camera's
     orientation at the stamp would have seen them, the camera turning at `omega_cam`
-    (3,) [rad/s, camera frame] during the readout `readout_s` of an image `height` rows
-    high. Unchanged when the readout or the rotation is zero."""
+    (3,) [rad/s, camera frame] during the readout `readout_s` of `camera`'s image.
+    Unchanged when the readout or the rotation is zero."""
     px_ideal = np.asarray(px_ideal, float)
     if not len(px_ideal) or readout_s <= 0.0 or not np.any(omega_cam):
         return px_ideal
-    K = np.asarray(K, float)
-    dt = row_time_offsets_s(rows_px, height, readout_s)
+    dt = row_time_offsets_s(rows_px, camera.height, readout_s)
     R = geo.rotvecs_to_matrices(dt[:, None] * np.asarray(omega_cam, float)[None, :])
-    b = np.einsum('nij,nj->ni', R, _rays(K, px_ideal))
+    b = np.einsum('nij,nj->ni', R, camera.unproject(px_ideal))
     out = px_ideal.copy()
     ok = b[:, 2] > 1e-6          # a ray turned behind the camera keeps its pixel
-    out[ok] = _project(K, b[ok])
+    out[ok] = camera.project(b[ok])
     return out
 
 
-def points_on_rays(px_ideal: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+def points_on_rays(px_ideal: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray,
                    depth: float) -> np.ndarray:
     """World points (n,3) at optical depth `depth` on the rays of ideal pixels (n,2)."""
-    return (_rays(np.asarray(K, float), np.asarray(px_ideal, float)) * depth) \
-        @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    b = camera.unproject(px_ideal)
+    return (b * (depth / b[:, 2:3])) @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
 
 
 def translation_to_stamp_time(px_ideal: np.ndarray, rows_px: np.ndarray, X_world: np.ndarray,
                               T_world_cam: np.ndarray, v_world: np.ndarray, readout_s: float,
-                              height: int, K: np.ndarray) -> np.ndarray:
+                              camera: PinholeCamera) -> np.ndarray:
     """Ideal pixels (n,2) of the points X_world (n,3), seen on the raw rows `rows_px`,
     moved by what the camera's translation at `v_world` (3,) [map units/s] during the
     readout moved them: their projection from the pose T_world_cam at the stamp minus
@@ -80,12 +70,11 @@ def translation_to_stamp_time(px_ideal: np.ndarray, rows_px: np.ndarray, X_world
     px_ideal = np.asarray(px_ideal, float)
     if not len(px_ideal) or readout_s <= 0.0 or not np.any(v_world):
         return px_ideal
-    K = np.asarray(K, float)
-    dt = row_time_offsets_s(rows_px, height, readout_s)
+    dt = row_time_offsets_s(rows_px, camera.height, readout_s)
     R_cw = T_world_cam[:3, :3].T
     X_c = (np.asarray(X_world, float) - T_world_cam[:3, 3]) @ R_cw.T
     X_row = X_c - dt[:, None] * (R_cw @ np.asarray(v_world, float))[None, :]
     ok = (X_c[:, 2] > 1e-6) & (X_row[:, 2] > 1e-6)
     out = px_ideal.copy()
-    out[ok] += _project(K, X_c[ok]) - _project(K, X_row[ok])
+    out[ok] += camera.project(X_c[ok]) - camera.project(X_row[ok])
     return out
