@@ -22,9 +22,10 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   same motion (docs/method.md §15.11). With ``_still`` (``walk_still``): the camera
   stands for 1 s before it moves (its first view 30 times, with fresh sensor noise), as
   a robot waits when the node starts (§15.12). With a camera suffix (``_hd``,
-  ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy``, ``_ss2``, ``_blur``, ``_rs`` (30 ms), ``_rs10``:
-  ``handheld_rotation_hd``, see CAMERAS): the same motion seen through another lens or
-  sensor (docs/method.md §15.13). With ``_repeat``, ``_jitter`` or ``_flicker``
+  ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy``, ``_ss2``, ``_blur``,
+  ``_rs`` (30 ms), ``_rs10``, ``_jpeg``: ``handheld_rotation_hd``, see CAMERAS): the same
+  motion seen through another lens or sensor (docs/method.md §15.13). ``car`` drives down
+  a rendered street through KITTI's camera (§15.16). With ``_repeat``, ``_jitter`` or ``_flicker``
   (``orbit_repeat``, ``walk_x3_jitter``): what a camera driver does to the stream
   (bench/stream_faults.py).
 
@@ -55,7 +56,7 @@ from .real_data import PRESETS
 #: rendered trajectories (ekf-vo-synth) and their length in frames (30 Hz): the ground
 #: robot's 760 frames are one loop of its rectangle, four turns in place
 SYNTHETIC = {'walk': 300, 'orbit': 300, 'ground_robot': 760, 'handheld_rotation': 300,
-             'drone_nadir': 300}
+             'drone_nadir': 300, 'car': 180}
 SEQUENCES = ('kitti_raw', 'kitti_jpeg', 'kitti_2x', 'dino', 'demo') + tuple(SYNTHETIC)
 REPO = Path(__file__).resolve().parents[1]
 #: first KITTI 06 frame whose ground-truth rotation is not the constant-rate segment
@@ -76,10 +77,7 @@ def _folder_frames(name: str):
 
     def frames():
         for t, g in data.frames():
-            if jpeg:
-                g = cv2.imdecode(cv2.imencode('.jpg', g, [cv2.IMWRITE_JPEG_QUALITY, 75])[1],
-                                 cv2.IMREAD_GRAYSCALE)
-            yield t, g, None
+            yield t, (_jpeg(g) if jpeg else g), None
     return data, frames(), {}
 
 
@@ -136,7 +134,13 @@ CAMERAS = {
     'blur': {'blur': 4.0},                              # 4 px of motion blur
     'rs': {'rolling_shutter_s': 0.03},                  # a webcam's 30 ms readout
     'rs10': {'rolling_shutter_s': 0.01},                # a phone camera's 10 ms
+    'jpeg': {},                     # each frame through JPEG at quality JPEG_QUALITY
 }
+#: the camera a trajectory is rendered through unless a suffix says otherwise: the car's
+#: is KITTI's (1226x370, 707 px, 10 Hz)
+TRAJECTORY_CAMERAS = {'car': {'width': 1226, 'height': 370, 'fx': 707.0, 'rate': 10.0}}
+#: the ``_jpeg`` suffix's quality (a CompressedImage stream's usual 75)
+JPEG_QUALITY = 75
 #: frames the camera of a ``_still`` sequence stands before it moves (1 s at 30 Hz)
 STILL_FRAMES = 30
 #: the standing camera's fresh sensor noise [grey levels]
@@ -161,6 +165,12 @@ def _synthetic_name(name: str) -> tuple[str, int, int, str, str] | None:
     return None
 
 
+def _jpeg(gray: np.ndarray) -> np.ndarray:
+    """A grey image through JPEG at JPEG_QUALITY and back."""
+    ok, buf = cv2.imencode('.jpg', gray, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+
+
 def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
                still: int = 0, fault: str = '', run=None, camera: str = ''):
     """Render a sequence (ground-truth stamps [s] and T_world_cam) and feed it to
@@ -168,8 +178,10 @@ def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
     returned third. `camera`: a CAMERAS variant ('' the renders' own)."""
     from ekf_vo.tools.synth import SynthConfig, render_sequence
     scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory,
-                       **CAMERAS.get(camera, {}))
+                       **{**TRAJECTORY_CAMERAS.get(trajectory, {}), **CAMERAS.get(camera, {})})
     seq = list(render_sequence(scfg))
+    if camera == 'jpeg':
+        seq = [(s, _jpeg(im), T) for s, im, T in seq]
     dt = seq[1][0] - seq[0][0]
     if speedup > 1:            # every k-th frame, at the renderer's frame interval
         seq = [(seq[0][0] + k * dt, im, T) for k, (_, im, T) in enumerate(seq[::speedup])]

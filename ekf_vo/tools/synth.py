@@ -33,8 +33,8 @@ import numpy as np
 from ..bridge.topics import transport_topic
 from ..cli import HelpFormatter, UsageError, check_writable, entry_point
 from .wheel_odometry import WheelNoise, wheel_odometry
-from .synth_scene import (TRAJECTORIES, Renderer, Scene, make_scene, trajectory_pose,
-                          trajectory_stats, undistort_pixels)
+from .synth_scene import (TRAJECTORIES, Renderer, Scene, make_scene, scene_for,
+                          trajectory_pose, trajectory_stats, undistort_pixels)
 
 logger = logging.getLogger(__name__)
 
@@ -97,7 +97,8 @@ class SequenceRenderer:
 
     def __init__(self, config: SynthConfig, scene: Scene | None = None) -> None:
         self.cfg = config
-        self.scene = scene if scene is not None else make_scene(config.seed, config.ppm)
+        self.scene = scene if scene is not None else \
+            scene_for(config.trajectory, config.seed, config.ppm)
         ss = max(1, int(config.supersample))
         K = config.K()
         W, H = config.width, config.height
@@ -284,6 +285,8 @@ TRAJECTORY_HELP = {
                          'roll +-15 deg at up to ~100 deg/s, a few cm of translation',
     'drone_nadir': 'about 2.1 m up, looking straight down at the floor (a planar scene), '
                    'flying a 2.8 m x 1.8 m figure of eight at up to ~0.5 m/s',
+    'car': 'a car 1.65 m up driving down a street of facades at 8-11 m/s (not the room; '
+           'KITTI\'s camera is --width 1226 --height 370 --fx 707 --rate 10)',
 }
 #: fewest frames of a usable bag (the bootstrap needs two views)
 MIN_FRAMES = 2

@@ -26,7 +26,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 TRAJECTORIES = ('walk', 'orbit', 'figure8', 'ground_robot', 'ground_robot_arcs',
-                'handheld_rotation', 'drone_nadir')
+                'handheld_rotation', 'drone_nadir', 'car')
+#: trajectories that drive down the street of synth_street.py, not through the room
+STREET_TRAJECTORIES = ('car',)
 
 # Room: x in [-3.5, 3.5], y in [-2.75, 2.75], z in [0, 2.8] (metres, world frame, z up).
 ROOM_MIN = np.array([-3.5, -2.75, 0.0])
@@ -51,6 +53,8 @@ class Quad:
     size_v: float
     texture: int
     double_sided: bool = False
+    #: texels per metre of this quad's texture (None: the scene's ``ppm``)
+    ppm: float | None = None
 
     @property
     def normal(self) -> np.ndarray:
@@ -60,11 +64,13 @@ class Quad:
 
 @dataclass
 class Scene:
-    """Quads plus their textures (mip pyramids, level 0 at ``ppm`` texels per metre)."""
+    """Quads plus their textures (mip pyramids, level 0 at ``ppm`` texels per metre, or
+    at the quad's own)."""
 
     quads: list[Quad]
     textures_bgr: list[np.ndarray]
     ppm: float
+    tile_m: float = 1.0        #: the renderer's tile size on this scene [m]
     _pyr: dict[tuple[int, bool], list[np.ndarray]] = field(default_factory=dict, repr=False)
 
     def pyramid(self, tex: int, color: bool) -> list[np.ndarray]:
@@ -249,6 +255,15 @@ def make_scene(seed: int = 0, ppm: float = 256.0) -> Scene:
     return Scene(quads, textures, ppm)
 
 
+def scene_for(trajectory: str, seed: int = 0, ppm: float = 256.0) -> Scene:
+    """The world `trajectory` moves through: the street for STREET_TRAJECTORIES (its own
+    texel density), else the room at `ppm`."""
+    if trajectory in STREET_TRAJECTORIES:
+        from .synth_street import make_street_scene
+        return make_street_scene(seed)
+    return make_scene(seed, ppm)
+
+
 # =========================================================================== renderer
 def undistort_pixels(pts: np.ndarray, K: np.ndarray, D: np.ndarray,
                      P: np.ndarray | None = None) -> np.ndarray:
@@ -284,10 +299,11 @@ class Renderer:
     """Z-buffered homography renderer of a :class:`Scene` for a pinhole camera ``K``."""
 
     def __init__(self, scene: Scene, K: np.ndarray, width: int, height: int, *,
-                 color: bool = False, near: float = 0.05, tile_m: float = 1.0,
+                 color: bool = False, near: float = 0.05, tile_m: float | None = None,
                  lod_bias: float = 0.0) -> None:
         """Args: K 3x3 intrinsics, image size, colour (BGR) or grey, near-plane distance (m),
-        tile size (m), mip LOD bias (levels; >0 blurrier)."""
+        tile size (m; None: the scene's), mip LOD bias (levels; >0 blurrier)."""
+        tile_m = scene.tile_m if tile_m is None else tile_m
         self.scene, self.K = scene, np.asarray(K, dtype=np.float64)
         self.Kinv = np.linalg.inv(self.K)
         self.width, self.height = int(width), int(height)
@@ -345,10 +361,10 @@ class Renderer:
         keep &= ~(u_num < -Z).all(1) & ~(u_num > W * Z).all(1)
         keep &= ~(v_num < -Z).all(1) & ~(v_num > H * Z).all(1)
         fx = self.K[0, 0]
-        ppm = self.scene.ppm
         for ti in np.flatnonzero(keep):
             qi, a0, a1, b0, b1 = self.tiles[ti]
             q = self.scene.quads[qi]
+            ppm = self.scene.ppm if q.ppm is None else q.ppm
             poly = _clip_near(pc_all[ti], self.near)
             if len(poly) < 3:
                 continue
@@ -553,6 +569,9 @@ def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
                + 0.15 * np.sin(w(7.0) * t + ph[2]))
         pitch = 0.15 + 0.12 * np.sin(w(6.0) * t + ph[3])
         roll = 0.08 * np.sin(w(5.0) * t + ph[4])
+    elif name == 'car':
+        from .synth_street import car_pose
+        return car_pose(float(t), seed)
     else:
         raise ValueError(f'unknown trajectory {name!r}; choose from {TRAJECTORIES}')
     T = np.eye(4)
