@@ -56,7 +56,7 @@ from .real_data import PRESETS
 #: rendered trajectories (ekf-vo-synth) and their length in frames (30 Hz): the ground
 #: robot's 760 frames are one loop of its rectangle, four turns in place
 SYNTHETIC = {'walk': 300, 'orbit': 300, 'ground_robot': 760, 'handheld_rotation': 300,
-             'drone_nadir': 300, 'car': 180}
+             'drone_nadir': 300, 'car': 180, 'car_turn': 200}
 SEQUENCES = ('kitti_raw', 'kitti_jpeg', 'kitti_2x', 'dino', 'demo') + tuple(SYNTHETIC)
 REPO = Path(__file__).resolve().parents[1]
 #: first KITTI 06 frame whose ground-truth rotation is not the constant-rate segment
@@ -138,7 +138,8 @@ CAMERAS = {
 }
 #: the camera a trajectory is rendered through unless a suffix says otherwise: the car's
 #: is KITTI's (1226x370, 707 px, 10 Hz)
-TRAJECTORY_CAMERAS = {'car': {'width': 1226, 'height': 370, 'fx': 707.0, 'rate': 10.0}}
+TRAJECTORY_CAMERAS = {t: {'width': 1226, 'height': 370, 'fx': 707.0, 'rate': 10.0}
+                      for t in ('car', 'car_turn')}
 #: the ``_jpeg`` suffix's quality (a CompressedImage stream's usual 75)
 JPEG_QUALITY = 75
 #: frames the camera of a ``_still`` sequence stands before it moves (1 s at 30 Hz)

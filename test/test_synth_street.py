@@ -11,8 +11,7 @@ from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.stream import VoStream
 from ekf_vo.tools import synth
 from ekf_vo.tools.consistency import CHI2_3DOF_999, rotation_nees
-from ekf_vo.tools.synth_street import (CAR_CAM_HEIGHT_M, ROAD_HALF_M, car_pose,
-                                       make_street_scene)
+from ekf_vo.tools.synth_street import CAR_CAM_HEIGHT_M, ROAD_HALF_M, car_pose
 
 SEED = 3
 #: KITTI's camera, as bench.rotation_nees renders the car
@@ -21,11 +20,12 @@ CAR_CAMERA = dict(width=1226, height=370, fx=707.0, rate=10.0)
 
 @pytest.fixture(scope='module')
 def street() -> synth.Scene:
-    return make_street_scene(SEED)
+    return synth.scene_for('car', SEED)    # the scene SequenceRenderer caches
 
 
 def _car(**kw) -> synth.SynthConfig:
-    return synth.SynthConfig(trajectory='car', seed=SEED, **{**CAR_CAMERA, 'noise_px': 0.0,
+    kw.setdefault('trajectory', 'car')
+    return synth.SynthConfig(seed=SEED, **{**CAR_CAMERA, 'noise_px': 0.0,
                                                              **kw})
 
 
@@ -40,6 +40,32 @@ def test_the_car_drives_down_its_side_of_the_street() -> None:
     assert 7.5 < st['speed_mean'] < 11.5 and st['speed_max'] < 11.5
     assert st['rot_max_deg_s'] < 10.0
     assert np.array_equal(synth.trajectory_pose('car', 2.5, SEED), car_pose(2.5, SEED))
+
+
+def test_the_turning_car_turns_left_into_the_side_street() -> None:
+    """car_turn: down the main street's right-hand lane, slowing for the corner, a
+    90 deg left turn at up to ~26 deg/s, and up the side street's right-hand lane."""
+    from ekf_vo.tools.synth_street import JUNCTION_X
+    ts = np.arange(0.0, 20.0, 0.1)
+    Ts = np.stack([synth.trajectory_pose('car_turn', float(t), SEED) for t in ts])
+    heading = np.degrees(np.arctan2(Ts[:, 1, 2], Ts[:, 0, 2]))    # the optical axis
+    assert abs(heading[0]) < 1.0 and abs(heading[-1] - 90.0) < 1.0
+    on_main = np.abs(Ts[:, 1, 3]) < ROAD_HALF_M - 1.0
+    on_side = np.abs(Ts[:, 0, 3] - JUNCTION_X) < ROAD_HALF_M - 1.0
+    assert np.all(on_main | on_side)
+    st = synth.trajectory_stats('car_turn', 20.0, SEED)
+    assert 20.0 < st['rot_max_deg_s'] < 35.0 and st['speed_max'] < 9.5
+
+
+def test_the_side_street_renders_without_holes() -> None:
+    """In the turn every pixel more than 25 rows below the horizon (the ground within
+    ~47 m) shows the street: no crack between the main street's and the side street's
+    surfaces. (Farther, diagonal views leave the scene.)"""
+    cfg = _car(trajectory='car_turn', frames=2)
+    seq = synth.SequenceRenderer(cfg)
+    for k in (115, 125, 135):
+        _, invz = seq.renderer.render(seq.pose(k))
+        assert np.all(invz[int(cfg.height / 2) + 25:] > 0)
 
 
 def test_the_street_renders_its_depth_and_its_sky(street: synth.Scene) -> None:

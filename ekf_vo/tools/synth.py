@@ -38,7 +38,7 @@ from .synth_scene import (TRAJECTORIES, Renderer, Scene, make_scene, scene_for,
 
 logger = logging.getLogger(__name__)
 
-__all__ = ['EPOCH_NS', 'TRAJECTORIES', 'Scene', 'make_scene', 'undistort_pixels',
+__all__ = ['EPOCH_NS', 'TRAJECTORIES', 'Scene', 'make_scene', 'scene_for', 'undistort_pixels',
            'trajectory_pose', 'trajectory_stats', 'SynthConfig', 'SequenceRenderer',
            'render_sequence', 'write_bag', 'build_parser', 'main']
 
@@ -287,6 +287,8 @@ TRAJECTORY_HELP = {
                    'flying a 2.8 m x 1.8 m figure of eight at up to ~0.5 m/s',
     'car': 'a car 1.65 m up driving down a street of facades at 8-11 m/s (not the room; '
            'KITTI\'s camera is --width 1226 --height 370 --fx 707 --rate 10)',
+    'car_turn': 'the car slowing to 4.5 m/s and turning left into a side street on a 10 m '
+                'radius (26 deg/s), then driving up it',
 }
 #: fewest frames of a usable bag (the bootstrap needs two views)
 MIN_FRAMES = 2

@@ -26,9 +26,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 TRAJECTORIES = ('walk', 'orbit', 'figure8', 'ground_robot', 'ground_robot_arcs',
-                'handheld_rotation', 'drone_nadir', 'car')
+                'handheld_rotation', 'drone_nadir', 'car', 'car_turn')
 #: trajectories that drive down the street of synth_street.py, not through the room
-STREET_TRAJECTORIES = ('car',)
+STREET_TRAJECTORIES = ('car', 'car_turn')
 
 # Room: x in [-3.5, 3.5], y in [-2.75, 2.75], z in [0, 2.8] (metres, world frame, z up).
 ROOM_MIN = np.array([-3.5, -2.75, 0.0])
@@ -260,7 +260,7 @@ def scene_for(trajectory: str, seed: int = 0, ppm: float = 256.0) -> Scene:
     texel density), else the room at `ppm`."""
     if trajectory in STREET_TRAJECTORIES:
         from .synth_street import make_street_scene
-        return make_street_scene(seed)
+        return make_street_scene(seed, trajectory == 'car_turn')
     return make_scene(seed, ppm)
 
 
@@ -572,6 +572,9 @@ def trajectory_pose(name: str, t: float, seed: int = 0) -> np.ndarray:
     elif name == 'car':
         from .synth_street import car_pose
         return car_pose(float(t), seed)
+    elif name == 'car_turn':
+        from .synth_street import car_turn_pose
+        return car_turn_pose(float(t), seed)
     else:
         raise ValueError(f'unknown trajectory {name!r}; choose from {TRAJECTORIES}')
     T = np.eye(4)

@@ -32,6 +32,9 @@ GROUND_PPM = 128.0
 STREET_TILE_M = 4.0
 #: the street's extent along x [m] (the car drives 0 -> ~170 m in its 180 frames)
 STREET_X = (-20.0, 280.0)
+#: where the side street of the ``car_turn`` scene joins from the left [m along x], and
+#: how far it runs [m along y]
+JUNCTION_X, SIDE_STREET_END_M = 150.0, 160.0
 #: half widths [m]: the carriageway, the nearest facade, the pavement's outer edge (the
 #: farthest facade)
 ROAD_HALF_M, FACADE_MIN_M, PAVEMENT_HALF_M = 5.5, 8.0, 12.0
@@ -56,68 +59,143 @@ def _ground(quad: Quad) -> Quad:
     return quad
 
 
+class _Street:
+    """One straight street, built in its own frame (x along it, y to its left) and placed
+    in the world at `origin` (x, y), turned by `heading` [rad] about z."""
+
+    def __init__(self, rng: np.random.Generator, quads: list[Quad],
+                 textures: list[np.ndarray], origin=(0.0, 0.0), heading: float = 0.0
+                 ) -> None:
+        self.rng, self.quads, self.textures = rng, quads, textures
+        c, s = math.cos(heading), math.sin(heading)
+        self._R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        self._o = np.array([origin[0], origin[1], 0.0])
+        self._heading_deg = math.degrees(heading)
+
+    def _point(self, p) -> np.ndarray:
+        return self._o + self._R @ np.asarray(p, float)
+
+    def _vector(self, v) -> np.ndarray:
+        return self._R @ np.asarray(v, float)
+
+    def rect(self, name: str, origin, u, v, tex: np.ndarray, ground: bool = False) -> None:
+        quad = _rect(name, self._point(origin), self._vector(u), self._vector(v),
+                     len(self.textures))
+        self.quads.append(_ground(quad) if ground else quad)
+        self.textures.append(tex)
+
+    def box(self, centre_xy, size, yaw_deg: float) -> None:
+        c = self._point((centre_xy[0], centre_xy[1], 0.0))
+        first = len(self.textures)
+        self.quads.extend(_box('car', (float(c[0]), float(c[1])), size,
+                               yaw_deg + self._heading_deg, first))
+        self.textures.extend(_texture(self.rng, size[0], size[2],
+                                      float(self.rng.uniform(60, 190))) for _ in range(5))
+
+    def build(self, x0: float, x1: float, left_gap: tuple[float, float] | None = None
+              ) -> None:
+        """Road, pavements, yards, facades, far rows and parked cars from x0 to x1; on
+        the left, nothing but the road within `left_gap` (a side street joins there)."""
+        rng = self.rng
+        in_gap = (lambda a, b: left_gap is not None and a < left_gap[1] and
+                  b > left_gap[0])
+        seg = 20.0
+        for k in range(int(math.ceil((x1 - x0) / seg))):
+            xa = x0 + k * seg
+            # the road runs on under the kerbs (no crack where the pavement rises 2 cm)
+            w = 2 * (ROAD_HALF_M + 0.25)
+            self.rect(f'road{k}', (xa, -w / 2, 0.0), (seg, 0, 0), (0, w, 0),
+                      _texture(rng, seg, w, 95.0, contrast=0.55, ppm=GROUND_PPM), True)
+            for side, sgn in (('l', 1.0), ('r', -1.0)):
+                y_in, y_out = sgn * ROAD_HALF_M, sgn * PAVEMENT_HALF_M
+                pavement = _texture(rng, seg, PAVEMENT_HALF_M - ROAD_HALF_M, 140.0,
+                                    contrast=0.7, ppm=GROUND_PPM)
+                yard = _texture(rng, seg, FAR_ROW_M - PAVEMENT_HALF_M, 110.0, contrast=0.6)
+                if sgn > 0 and in_gap(xa, xa + seg):
+                    continue
+                self.rect(f'pavement{side}{k}', (xa, min(y_in, y_out), 0.02), (seg, 0, 0),
+                          (0, PAVEMENT_HALF_M - ROAD_HALF_M, 0), pavement, True)
+                # the ground behind the facades, seen through the gaps, up to the far row
+                self.rect(f'yard{side}{k}', (xa, min(y_out, sgn * FAR_ROW_M), 0.0),
+                          (seg, 0, 0), (0, FAR_ROW_M - PAVEMENT_HALF_M, 0), yard)
+        for sgn in (1.0, -1.0):
+            x = x0
+            while x < x1:
+                length = float(rng.uniform(8.0, 30.0))
+                height = float(rng.uniform(5.0, 18.0))
+                y = sgn * float(rng.uniform(FACADE_MIN_M, PAVEMENT_HALF_M))
+                tex = _texture(rng, length, height, float(rng.uniform(100, 160)))
+                if not (sgn > 0 and in_gap(x, x + length)):
+                    # the facade faces the street: its normal points towards y = 0
+                    if sgn > 0:
+                        self.rect('facade', (x, y, 0.0), (length, 0, 0), (0, 0, height), tex)
+                    else:
+                        self.rect('facade', (x + length, y, 0.0), (-length, 0, 0),
+                                  (0, 0, height), tex)
+                x += length + float(rng.choice([0.0, 0.0, rng.uniform(3.0, 8.0)]))
+            far = sgn * FAR_ROW_M
+            spans = [(x0, x1)]
+            if sgn > 0 and left_gap is not None:
+                spans = [(x0, left_gap[0]), (left_gap[1], x1)]
+            tex = _texture(rng, x1 - x0, 12.0, float(rng.uniform(100, 150)))
+            for a, b in spans:
+                o = (a, far, 0.0) if sgn > 0 else (b, far, 0.0)
+                u = (b - a, 0, 0) if sgn > 0 else (a - b, 0, 0)
+                self.rect('far_row', o, u, (0, 0, 12.0), tex if len(spans) == 1 else
+                          np.ascontiguousarray(tex[:, int((a - x0) * STREET_PPM):
+                                                   int((b - x0) * STREET_PPM)]))
+            for xc in np.arange(x0 + 15.0, x1, 1.0):
+                if rng.uniform() < 0.06:      # a parked car every ~17 m on average
+                    if sgn > 0 and in_gap(xc - 3.0, xc + 3.0):
+                        continue
+                    self.box((float(xc), sgn * (ROAD_HALF_M - 1.2)), (4.3, 1.8, 1.5),
+                             float(rng.uniform(-3, 3)))
+
+
 @functools.lru_cache(maxsize=2)
-def make_street_scene(seed: int = 0) -> Scene:
+def make_street_scene(seed: int = 0, junction: bool = False) -> Scene:
     """A straight street of STREET_X: road and pavements (20 m segments), a row of
     buildings on each side (8-30 m long, 5-18 m high, 8-12 m from the street's axis,
     with gaps of 0-8 m), a farther row FAR_ROW_M out seen through the gaps over open
-    ground, and parked cars.
+    ground, and parked cars. `junction`: a side street joins from the left at
+    x = JUNCTION_X (the ``car_turn`` trajectory turns into it).
     Geometry and textures depend on ``seed``; cached like synth_scene.make_scene."""
     rng = np.random.default_rng([int(seed), 8080])
     quads: list[Quad] = []
     textures: list[np.ndarray] = []
-
-    def add(quad_list: list[Quad], tex: list[np.ndarray]) -> None:
-        quads.extend(quad_list)
-        textures.extend(tex)
-
-    x0, x1 = STREET_X
-    seg = 20.0
-    for k in range(int(math.ceil((x1 - x0) / seg))):
-        xa = x0 + k * seg
-        # the road runs on under the kerbs (no crack where the pavement rises 2 cm)
-        w = 2 * (ROAD_HALF_M + 0.25)
-        add([_ground(_rect(f'road{k}', (xa, -w / 2, 0.0), (seg, 0, 0), (0, w, 0),
-                           len(textures)))],
-            [_texture(rng, seg, w, 95.0, contrast=0.55, ppm=GROUND_PPM)])
-        for side, sgn in (('l', 1.0), ('r', -1.0)):
-            y_in, y_out = sgn * ROAD_HALF_M, sgn * PAVEMENT_HALF_M
-            o = (xa, min(y_in, y_out), 0.02)
-            add([_ground(_rect(f'pavement{side}{k}', o, (seg, 0, 0),
-                               (0, PAVEMENT_HALF_M - ROAD_HALF_M, 0), len(textures)))],
-                [_texture(rng, seg, PAVEMENT_HALF_M - ROAD_HALF_M, 140.0, contrast=0.7,
-                          ppm=GROUND_PPM)])
-            # the ground behind the facades, seen through the gaps, up to the far row
-            o = (xa, min(y_out, sgn * FAR_ROW_M), 0.0)
-            add([_rect(f'yard{side}{k}', o, (seg, 0, 0), (0, FAR_ROW_M - PAVEMENT_HALF_M, 0),
-                       len(textures))],
-                [_texture(rng, seg, FAR_ROW_M - PAVEMENT_HALF_M, 110.0, contrast=0.6)])
-    for sgn in (1.0, -1.0):
-        x = x0
-        while x < x1:
-            length = float(rng.uniform(8.0, 30.0))
-            height = float(rng.uniform(5.0, 18.0))
-            y = sgn * float(rng.uniform(FACADE_MIN_M, PAVEMENT_HALF_M))
-            # the facade faces the street: its normal points towards y = 0
-            if sgn > 0:
-                quad = _rect('facade', (x, y, 0.0), (length, 0, 0), (0, 0, height), len(textures))
-            else:
-                quad = _rect('facade', (x + length, y, 0.0), (-length, 0, 0), (0, 0, height),
-                             len(textures))
-            add([quad], [_texture(rng, length, height, float(rng.uniform(100, 160)))])
-            x += length + float(rng.choice([0.0, 0.0, rng.uniform(3.0, 8.0)]))
-        far = sgn * FAR_ROW_M
-        o = (x0, far, 0.0) if sgn > 0 else (x1, far, 0.0)
-        u = (x1 - x0, 0, 0) if sgn > 0 else (x0 - x1, 0, 0)
-        add([_rect('far_row', o, u, (0, 0, 12.0), len(textures))],
-            [_texture(rng, x1 - x0, 12.0, float(rng.uniform(100, 150)))])
-        for xc in np.arange(x0 + 15.0, x1, 1.0):
-            if rng.uniform() < 0.06:      # a parked car every ~17 m on average
-                first = len(textures)
-                add(_box('car', (float(xc), sgn * (ROAD_HALF_M - 1.2)), (4.3, 1.8, 1.5),
-                         float(rng.uniform(-3, 3)), first),
-                    [_texture(rng, 4.3, 1.5, float(rng.uniform(60, 190))) for _ in range(5)])
+    gap = (JUNCTION_X - 10.0, JUNCTION_X + 10.0) if junction else None
+    _Street(rng, quads, textures).build(*STREET_X, left_gap=gap)
+    if junction:
+        # the side street runs along +y; up to the main street's far row only its road
+        # and its pavements (the corners are the main street's yards), then all of it
+        side = _Street(rng, quads, textures, origin=(JUNCTION_X, 0.0), heading=np.pi / 2)
+        kerb, gap_half = ROAD_HALF_M + 0.25, (gap[1] - gap[0]) / 2
+        length = FAR_ROW_M - kerb
+        side.rect('road_in', (kerb, -kerb, 0.0), (length, 0, 0), (0, 2 * kerb, 0),
+                  _texture(rng, length, 2 * kerb, 95.0, contrast=0.55, ppm=GROUND_PPM), True)
+        for sgn in (1.0, -1.0):
+            side.rect('pavement_in', (ROAD_HALF_M, min(sgn * ROAD_HALF_M, sgn * gap_half), 0.02),
+                      (FAR_ROW_M - ROAD_HALF_M, 0, 0), (0, gap_half - ROAD_HALF_M, 0),
+                      _texture(rng, FAR_ROW_M - ROAD_HALF_M, gap_half - ROAD_HALF_M, 140.0,
+                               contrast=0.7, ppm=GROUND_PPM), True)
+        side.build(FAR_ROW_M, SIDE_STREET_END_M)
     return Scene(quads, textures, STREET_PPM, tile_m=STREET_TILE_M)
+
+
+def _suspension(t: float, seed: int) -> tuple[float, float, float]:
+    """(pitch, roll [rad], camera height [m]) of a car at t [s]: +-0.6 deg, 2 cm."""
+    ph = np.random.default_rng([int(seed), 4243]).uniform(0, 2 * np.pi, 6)
+    return (math.radians(0.6) * math.sin(2 * np.pi / 1.7 * t + ph[2]),
+            math.radians(0.6) * math.sin(2 * np.pi / 2.3 * t + ph[3]),
+            CAR_CAM_HEIGHT_M + 0.02 * math.sin(2 * np.pi / 1.3 * t + ph[4]))
+
+
+def _car_T(x: float, y: float, yaw: float, t: float, seed: int) -> np.ndarray:
+    pitch, roll, z = _suspension(t, seed)
+    T = np.eye(4)
+    T[:3, :3] = _euler_to_R(yaw, pitch, roll)
+    T[:3, 3] = [x, y, z]
+    return T
 
 
 def car_pose(t: float, seed: int = 0) -> np.ndarray:
@@ -125,18 +203,56 @@ def car_pose(t: float, seed: int = 0) -> np.ndarray:
     along the street at CAR_SPEED_MPS +- CAR_SPEED_SWING_MPS, weaving +-1.2 m across its
     lane (the heading follows the path: +-4 deg), with a suspension's pitch and roll of
     +-0.6 deg and 2 cm of heave."""
-    rng = np.random.default_rng([int(seed), 4243])
-    ph = rng.uniform(0, 2 * np.pi, 6)
+    ph = np.random.default_rng([int(seed), 4243]).uniform(0, 2 * np.pi, 6)
     w_speed, w_lane = 2 * np.pi / 9.0, 2 * np.pi / 11.0
     x = CAR_SPEED_MPS * t - CAR_SPEED_SWING_MPS / w_speed * (math.cos(w_speed * t + ph[0])
                                                              - math.cos(ph[0]))
     speed = CAR_SPEED_MPS + CAR_SPEED_SWING_MPS * math.sin(w_speed * t + ph[0])
     y = -2.0 + 1.2 * math.sin(w_lane * t + ph[1])
     yaw = math.atan2(1.2 * w_lane * math.cos(w_lane * t + ph[1]), speed)
-    pitch = math.radians(0.6) * math.sin(2 * np.pi / 1.7 * t + ph[2])
-    roll = math.radians(0.6) * math.sin(2 * np.pi / 2.3 * t + ph[3])
-    z = CAR_CAM_HEIGHT_M + 0.02 * math.sin(2 * np.pi / 1.3 * t + ph[4])
-    T = np.eye(4)
-    T[:3, :3] = _euler_to_R(yaw, pitch, roll)
-    T[:3, 3] = [x, y, z]
-    return T
+    return _car_T(x, y, yaw, t, seed)
+
+
+#: ``car_turn``: where it starts [m along x], the radius of its left turn into the side
+#: street [m], its speed before and after the turn and in it [m/s], how long it takes
+#: to slow down and to speed up again [s]
+_TURN_START_X, _TURN_RADIUS_M = 60.0, 10.0
+_TURN_CRUISE_MPS, _TURN_SLOW_MPS, _TURN_RAMP_S = 9.0, 4.5, 5.0
+
+
+def _turn_distance(t: float) -> float:
+    """Distance driven by the ``car_turn`` car after t [s]: cruising, slowing down
+    (linearly) to be at _TURN_SLOW_MPS where the arc begins, round the arc, speeding up
+    again, cruising."""
+    v0, v1, ramp = _TURN_CRUISE_MPS, _TURN_SLOW_MPS, _TURN_RAMP_S
+    arc_start = (JUNCTION_X + 2.0 - _TURN_RADIUS_M) - _TURN_START_X
+    slow = 0.5 * (v0 + v1) * ramp
+    phases = [((arc_start - slow) / v0, v0, v0), (ramp, v0, v1),
+              (0.5 * np.pi * _TURN_RADIUS_M / v1, v1, v1), (ramp, v1, v0), (np.inf, v0, v0)]
+    s = 0.0
+    for duration, va, vb in phases:
+        if t <= duration:
+            return s + va * t + 0.5 * (vb - va) / duration * t * t if np.isfinite(duration) \
+                else s + va * t
+        s += 0.5 * (va + vb) * duration
+        t -= duration
+    return s
+
+
+def car_turn_pose(t: float, seed: int = 0) -> np.ndarray:
+    """T_world_cam (optical frame) of the ``car_turn`` trajectory at t [s]: the car drives
+    down the street from x = _TURN_START_X in the right-hand lane (y = -2 m), slows to
+    4.5 m/s, turns left into the side street on a 10 m radius (26 deg/s) and drives up it
+    (x = JUNCTION_X + 2 m), with car_pose's suspension."""
+    s = _turn_distance(float(t))
+    R, x_arc = _TURN_RADIUS_M, JUNCTION_X + 2.0 - _TURN_RADIUS_M
+    straight = x_arc - _TURN_START_X
+    arc = 0.5 * np.pi * R
+    if s < straight:
+        x, y, yaw = _TURN_START_X + s, -2.0, 0.0
+    elif s < straight + arc:
+        phi = (s - straight) / R
+        x, y, yaw = x_arc + R * math.sin(phi), -2.0 + R * (1.0 - math.cos(phi)), phi
+    else:
+        x, y, yaw = x_arc + R, -2.0 + R + (s - straight - arc), 0.5 * np.pi
+    return _car_T(x, y, yaw, float(t), seed)
