@@ -24,10 +24,10 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   a robot waits when the node starts (§15.12). With a camera suffix (``_hd``,
   ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy``, ``_ss2``, ``_blur``,
   ``_rs`` (30 ms), ``_rs10``, ``_jpeg``: ``handheld_rotation_hd``, see CAMERAS): the same
-  motion seen through another lens or sensor (docs/method.md §15.13). ``car`` drives down
-  a rendered street through KITTI's camera (§15.16). With ``_repeat``, ``_jitter`` or ``_flicker``
-  (``orbit_repeat``, ``walk_x3_jitter``): what a camera driver does to the stream
-  (bench/stream_faults.py).
+  motion seen through another lens or sensor (docs/method.md §15.13). ``car`` and
+  ``car_turn`` drive down a rendered street through KITTI's camera (§15.16). With
+  ``_repeat``, ``_jitter`` or ``_flicker`` (``orbit_repeat``, ``walk_x3_jitter``): what
+  a camera driver does to the stream (bench/stream_faults.py).
 
     python -m bench.rotation_nees [--sequences ...] [--seeds 0 1 2] [--set NAME=VALUE ...]
                                   [--json OUT]
@@ -168,7 +168,7 @@ def _synthetic_name(name: str) -> tuple[str, int, int, str, str] | None:
 
 def _jpeg(gray: np.ndarray) -> np.ndarray:
     """A grey image through JPEG at JPEG_QUALITY and back."""
-    ok, buf = cv2.imencode('.jpg', gray, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    _, buf = cv2.imencode('.jpg', gray, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
 
 

@@ -11,11 +11,19 @@ from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.stream import VoStream
 from ekf_vo.tools import synth
 from ekf_vo.tools.consistency import CHI2_3DOF_999, rotation_nees
-from ekf_vo.tools.synth_street import CAR_CAM_HEIGHT_M, ROAD_HALF_M, car_pose
+from ekf_vo.tools.synth_street import (CAR_CAM_HEIGHT_M, ROAD_HALF_M, car_pose,
+                                       make_street_scene)
 
 SEED = 3
 #: KITTI's camera, as bench.rotation_nees renders the car
 CAR_CAMERA = dict(width=1226, height=370, fx=707.0, rate=10.0)
+
+
+@pytest.fixture(scope='module', autouse=True)
+def _free_the_streets():
+    """The streets are ~650 MB each: do not keep them for the rest of the session."""
+    yield
+    make_street_scene.cache_clear()
 
 
 @pytest.fixture(scope='module')

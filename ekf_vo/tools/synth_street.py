@@ -1,15 +1,17 @@
-"""A street for ``ekf-vo-synth``: the ``car`` trajectory's world (docs/method.md §15.16).
+"""A street for ``ekf-vo-synth``: the world of the ``car`` and ``car_turn`` trajectories
+(docs/method.md §15.16).
 
 Every other rendered sequence is in one 7 m x 5.5 m room, 1-5 m from its walls. A car
-camera sees something else: a road plane running to the horizon, facades 6-12 m to the
+camera sees something else: a road plane running to the horizon, facades 8-12 m to the
 side that stream past at a metre a frame, parked cars, gaps between buildings that open
 onto a farther row, and nothing at all (the sky) in the top of the image. Forward motion
 puts the epipole inside the image, where the points barely move: the two-view bootstrap's
 and the filter's hard case, and the one the shared KITTI frames show only 51 frames of.
 
 World frame z up, x along the street (the car drives towards +x), y to the left. Textures
-are drawn at a quarter of the room's scale (blotches of 10-90 cm, not 2.5-22 cm) and at
-STREET_PPM texels per metre, so a 200 m street stays a few hundred MB and a few seconds.
+are drawn at a quarter of the room's scale (blotches of 10-90 cm, not 2.5-22 cm), at
+STREET_PPM texels per metre (the road and pavements at GROUND_PPM): a 300 m street is
+~650 MB of textures and ~20 s to make, once per seed.
 """
 from __future__ import annotations
 
@@ -217,6 +219,8 @@ def car_pose(t: float, seed: int = 0) -> np.ndarray:
 #: street [m], its speed before and after the turn and in it [m/s], how long it takes
 #: to slow down and to speed up again [s]
 _TURN_START_X, _TURN_RADIUS_M = 60.0, 10.0
+#: its lane: this far right of each street's axis [m]
+_TURN_LANE_M = 2.0
 _TURN_CRUISE_MPS, _TURN_SLOW_MPS, _TURN_RAMP_S = 9.0, 4.5, 5.0
 
 
@@ -225,7 +229,7 @@ def _turn_distance(t: float) -> float:
     (linearly) to be at _TURN_SLOW_MPS where the arc begins, round the arc, speeding up
     again, cruising."""
     v0, v1, ramp = _TURN_CRUISE_MPS, _TURN_SLOW_MPS, _TURN_RAMP_S
-    arc_start = (JUNCTION_X + 2.0 - _TURN_RADIUS_M) - _TURN_START_X
+    arc_start = (JUNCTION_X + _TURN_LANE_M - _TURN_RADIUS_M) - _TURN_START_X
     slow = 0.5 * (v0 + v1) * ramp
     phases = [((arc_start - slow) / v0, v0, v0), (ramp, v0, v1),
               (0.5 * np.pi * _TURN_RADIUS_M / v1, v1, v1), (ramp, v1, v0), (np.inf, v0, v0)]
@@ -241,18 +245,18 @@ def _turn_distance(t: float) -> float:
 
 def car_turn_pose(t: float, seed: int = 0) -> np.ndarray:
     """T_world_cam (optical frame) of the ``car_turn`` trajectory at t [s]: the car drives
-    down the street from x = _TURN_START_X in the right-hand lane (y = -2 m), slows to
+    down the street from x = _TURN_START_X in the right-hand lane (y = -_TURN_LANE_M), slows to
     4.5 m/s, turns left into the side street on a 10 m radius (26 deg/s) and drives up it
-    (x = JUNCTION_X + 2 m), with car_pose's suspension."""
+    (x = JUNCTION_X + _TURN_LANE_M), with car_pose's suspension."""
     s = _turn_distance(float(t))
-    R, x_arc = _TURN_RADIUS_M, JUNCTION_X + 2.0 - _TURN_RADIUS_M
+    R, x_arc, y0 = _TURN_RADIUS_M, JUNCTION_X + _TURN_LANE_M - _TURN_RADIUS_M, -_TURN_LANE_M
     straight = x_arc - _TURN_START_X
     arc = 0.5 * np.pi * R
     if s < straight:
-        x, y, yaw = _TURN_START_X + s, -2.0, 0.0
+        x, y, yaw = _TURN_START_X + s, y0, 0.0
     elif s < straight + arc:
         phi = (s - straight) / R
-        x, y, yaw = x_arc + R * math.sin(phi), -2.0 + R * (1.0 - math.cos(phi)), phi
+        x, y, yaw = x_arc + R * math.sin(phi), y0 + R * (1.0 - math.cos(phi)), phi
     else:
-        x, y, yaw = x_arc + R, -2.0 + R + (s - straight - arc), 0.5 * np.pi
+        x, y, yaw = x_arc + R, y0 + R + (s - straight - arc), 0.5 * np.pi
     return _car_T(x, y, yaw, float(t), seed)
