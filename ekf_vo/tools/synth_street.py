@@ -97,11 +97,21 @@ class _Street:
     def build(self, x0: float, x1: float, left_gap: tuple[float, float] | None = None
               ) -> None:
         """Road, pavements, yards, facades, far rows and parked cars from x0 to x1; on
-        the left, nothing but the road within `left_gap` (a side street joins there)."""
+        the left, nothing but the road within `left_gap` (a side street joins there).
+        (The order of the random draws is the scene's identity: keep it.)"""
+        self._gap = left_gap
+        self._ground_strips(x0, x1)
+        for sgn in (1.0, -1.0):
+            self._facades(sgn, x0, x1)
+            self._far_row(sgn, x0, x1)
+            self._parked_cars(sgn, x0, x1)
+
+    def _in_gap(self, sgn: float, a: float, b: float) -> bool:
+        """Whether [a, b] on side `sgn` (+1 left) overlaps the side street's mouth."""
+        return sgn > 0 and self._gap is not None and a < self._gap[1] and b > self._gap[0]
+
+    def _ground_strips(self, x0: float, x1: float, seg: float = 20.0) -> None:
         rng = self.rng
-        in_gap = (lambda a, b: left_gap is not None and a < left_gap[1] and
-                  b > left_gap[0])
-        seg = 20.0
         for k in range(int(math.ceil((x1 - x0) / seg))):
             xa = x0 + k * seg
             # the road runs on under the kerbs (no crack where the pavement rises 2 cm)
@@ -113,45 +123,51 @@ class _Street:
                 pavement = _texture(rng, seg, PAVEMENT_HALF_M - ROAD_HALF_M, 140.0,
                                     contrast=0.7, ppm=GROUND_PPM)
                 yard = _texture(rng, seg, FAR_ROW_M - PAVEMENT_HALF_M, 110.0, contrast=0.6)
-                if sgn > 0 and in_gap(xa, xa + seg):
+                if self._in_gap(sgn, xa, xa + seg):
                     continue
                 self.rect(f'pavement{side}{k}', (xa, min(y_in, y_out), 0.02), (seg, 0, 0),
                           (0, PAVEMENT_HALF_M - ROAD_HALF_M, 0), pavement, True)
                 # the ground behind the facades, seen through the gaps, up to the far row
                 self.rect(f'yard{side}{k}', (xa, min(y_out, sgn * FAR_ROW_M), 0.0),
                           (seg, 0, 0), (0, FAR_ROW_M - PAVEMENT_HALF_M, 0), yard)
-        for sgn in (1.0, -1.0):
-            x = x0
-            while x < x1:
-                length = float(rng.uniform(8.0, 30.0))
-                height = float(rng.uniform(5.0, 18.0))
-                y = sgn * float(rng.uniform(FACADE_MIN_M, PAVEMENT_HALF_M))
-                tex = _texture(rng, length, height, float(rng.uniform(100, 160)))
-                if not (sgn > 0 and in_gap(x, x + length)):
-                    # the facade faces the street: its normal points towards y = 0
-                    if sgn > 0:
-                        self.rect('facade', (x, y, 0.0), (length, 0, 0), (0, 0, height), tex)
-                    else:
-                        self.rect('facade', (x + length, y, 0.0), (-length, 0, 0),
-                                  (0, 0, height), tex)
-                x += length + float(rng.choice([0.0, 0.0, rng.uniform(3.0, 8.0)]))
-            far = sgn * FAR_ROW_M
-            spans = [(x0, x1)]
-            if sgn > 0 and left_gap is not None:
-                spans = [(x0, left_gap[0]), (left_gap[1], x1)]
-            tex = _texture(rng, x1 - x0, 12.0, float(rng.uniform(100, 150)))
-            for a, b in spans:
-                o = (a, far, 0.0) if sgn > 0 else (b, far, 0.0)
-                u = (b - a, 0, 0) if sgn > 0 else (a - b, 0, 0)
-                self.rect('far_row', o, u, (0, 0, 12.0), tex if len(spans) == 1 else
-                          np.ascontiguousarray(tex[:, int((a - x0) * STREET_PPM):
-                                                   int((b - x0) * STREET_PPM)]))
-            for xc in np.arange(x0 + 15.0, x1, 1.0):
-                if rng.uniform() < 0.06:      # a parked car every ~17 m on average
-                    if sgn > 0 and in_gap(xc - 3.0, xc + 3.0):
-                        continue
-                    self.box((float(xc), sgn * (ROAD_HALF_M - 1.2)), (4.3, 1.8, 1.5),
-                             float(rng.uniform(-3, 3)))
+
+    def _facades(self, sgn: float, x0: float, x1: float) -> None:
+        rng = self.rng
+        x = x0
+        while x < x1:
+            length = float(rng.uniform(8.0, 30.0))
+            height = float(rng.uniform(5.0, 18.0))
+            y = sgn * float(rng.uniform(FACADE_MIN_M, PAVEMENT_HALF_M))
+            tex = _texture(rng, length, height, float(rng.uniform(100, 160)))
+            if not self._in_gap(sgn, x, x + length):
+                # the facade faces the street: its normal points towards y = 0
+                if sgn > 0:
+                    self.rect('facade', (x, y, 0.0), (length, 0, 0), (0, 0, height), tex)
+                else:
+                    self.rect('facade', (x + length, y, 0.0), (-length, 0, 0),
+                              (0, 0, height), tex)
+            x += length + float(rng.choice([0.0, 0.0, rng.uniform(3.0, 8.0)]))
+
+    def _far_row(self, sgn: float, x0: float, x1: float) -> None:
+        far = sgn * FAR_ROW_M
+        spans = [(x0, x1)]
+        if sgn > 0 and self._gap is not None:
+            spans = [(x0, self._gap[0]), (self._gap[1], x1)]
+        tex = _texture(self.rng, x1 - x0, 12.0, float(self.rng.uniform(100, 150)))
+        for a, b in spans:
+            o = (a, far, 0.0) if sgn > 0 else (b, far, 0.0)
+            u = (b - a, 0, 0) if sgn > 0 else (a - b, 0, 0)
+            self.rect('far_row', o, u, (0, 0, 12.0), tex if len(spans) == 1 else
+                      np.ascontiguousarray(tex[:, int((a - x0) * STREET_PPM):
+                                               int((b - x0) * STREET_PPM)]))
+
+    def _parked_cars(self, sgn: float, x0: float, x1: float) -> None:
+        for xc in np.arange(x0 + 15.0, x1, 1.0):
+            if self.rng.uniform() < 0.06:      # a parked car every ~17 m on average
+                if self._in_gap(sgn, xc - 3.0, xc + 3.0):
+                    continue
+                self.box((float(xc), sgn * (ROAD_HALF_M - 1.2)), (4.3, 1.8, 1.5),
+                         float(self.rng.uniform(-3, 3)))
 
 
 @functools.lru_cache(maxsize=2)
