@@ -47,10 +47,6 @@ RATE_FIT_LOOSENESS = 5.0
 class Initialisation:
     """The bootstrap methods of VisualOdometry (see the module docstring)."""
 
-    #: the camera's rotation rate before the map (camera frame, rad/s) over the last
-    #: frame step: a rolling shutter's rows are brought to the stamp with it
-    _initialising_rate = np.zeros(3)
-
     # ------------------------------------------------------------------ bootstrap
     def _track_initialising(self, gray: np.ndarray, stamp_ns: int
                             ) -> tuple[Tracks, np.ndarray, FrameResult]:

@@ -113,6 +113,8 @@ class VisualOdometry(Initialisation, LossHandling):
         self._ref = None                # the bootstrap's reference frame (initialisation.py)
         self._last_initialising = None  # (stamp, ids, ideal px) of the last such frame
         self._orientation_published = False
+        # the rotation rate before the map over the last frame step (camera frame,
+        # rad/s): a rolling shutter's rows are brought to the stamp with it
         self._initialising_rate = np.zeros(3)
         if self.orientation is not None:
             self.orientation.restart(self._anchor_T_world_cam[:3, :3],

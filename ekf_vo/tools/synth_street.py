@@ -248,15 +248,14 @@ def _turn_distance(t: float) -> float:
     arc_start = (JUNCTION_X + _TURN_LANE_M - _TURN_RADIUS_M) - _TURN_START_X
     slow = 0.5 * (v0 + v1) * ramp
     phases = [((arc_start - slow) / v0, v0, v0), (ramp, v0, v1),
-              (0.5 * np.pi * _TURN_RADIUS_M / v1, v1, v1), (ramp, v1, v0), (np.inf, v0, v0)]
+              (0.5 * np.pi * _TURN_RADIUS_M / v1, v1, v1), (ramp, v1, v0)]
     s = 0.0
     for duration, va, vb in phases:
         if t <= duration:
-            return s + va * t + 0.5 * (vb - va) / duration * t * t if np.isfinite(duration) \
-                else s + va * t
+            return s + va * t + 0.5 * (vb - va) / duration * t * t
         s += 0.5 * (va + vb) * duration
         t -= duration
-    return s
+    return s + v0 * t                  # cruising on up the side street
 
 
 def car_turn_pose(t: float, seed: int = 0) -> np.ndarray:
