@@ -1,16 +1,24 @@
-"""What a camera driver does to a stream, applied to a rendered sequence (bench.rotation_nees
-suffixes ``_repeat``, ``_jitter``, ``_flicker``; docs/ros.md §5, §7, §8, docs/method.md
-§3.5, §6.1). Each takes and returns [(stamp ns, image, T_world_cam)], in stamp order; the
-ground truth of a frame stays that of the image it carries.
+"""What a camera, its driver or its mounting does to a stream, applied to a rendered
+sequence (bench.rotation_nees suffixes ``_repeat``, ``_jitter``, ``_flicker``,
+``_overlay``, ``_body``, ``_hotpixels``, ``_dark``, ``_vignette``; docs/ros.md §5, §7, §8,
+docs/method.md §3.5, §6.1, §6.10). Each takes and returns [(stamp ns, image,
+T_world_cam)], in stamp order; the ground truth of a frame stays that of the image it
+carries.
 
 - ``repeat``: each frame, with probability REPEAT_SHARE, sent again half a frame later
   (a driver whose camera runs slower than it publishes, or a relay);
 - ``jitter``: every stamp moved by N(0, JITTER_S) (a driver that stamps on arrival);
 - ``flicker``: every image scaled by a gain uniform in 1 +- FLICKER_GAIN (lamps at the
-  mains frequency, an auto-exposure that hunts).
+  mains frequency, an auto-exposure that hunts);
+- ``overlay``: a clock burned into the top-left corner (a dashcam, a security camera);
+- ``body``: the vehicle's own body over the bottom BODY_SHARE of the view;
+- ``hotpixels``: stuck bright and dead sensor pixels;
+- ``dark``: a dim scene, DARK_GAIN of the brightness with DARK_NOISE of sensor noise;
+- ``vignette``: a lens's fall-off to half the brightness in the corners.
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 REPEAT_SHARE = 0.2
@@ -41,7 +49,83 @@ def flicker(seq: list, rng: np.random.Generator) -> list:
     return out
 
 
-FAULTS = {'repeat': repeat, 'jitter': jitter, 'flicker': flicker}
+#: the burned-in clock's text height as a share of the image height
+OVERLAY_HEIGHT = 0.06
+#: the share of the image, at the bottom, that the vehicle's own body covers
+BODY_SHARE = 0.15
+#: the share of pixels of a sensor's defects (stuck bright, or dead)
+HOT_PIXEL_SHARE = 0.001
+#: a dim scene: the exposure's gain, and the sensor noise that then shows [grey levels]
+DARK_GAIN, DARK_NOISE = 0.2, 2.0
+
+
+def overlay(seq: list, rng: np.random.Generator) -> list:
+    """A clock burned into the image (a dashcam's or a security camera's): white text on a
+    black box in the top-left corner, its seconds and milliseconds changing every frame."""
+    out = []
+    for t, im, T in seq:
+        im = im.copy()
+        h = im.shape[0]
+        scale = OVERLAY_HEIGHT * h / 22.0
+        text = f'2026-11-26 16:{(t // 60_000_000_000) % 60:02d}:{(t // 1_000_000_000) % 60:02d}' \
+               f'.{(t // 1_000_000) % 1000:03d}'
+        (w, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 2)
+        cv2.rectangle(im, (0, 0), (w + 8, th + base + 8), 0, -1)
+        cv2.putText(im, text, (4, th + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, 255, 2)
+        out.append((t, im, T))
+    return out
+
+
+def body(seq: list, rng: np.random.Generator) -> list:
+    """The vehicle's own body in the bottom BODY_SHARE of the view (a car's bonnet, a
+    robot's bumper): a fixed texture that moves with the camera."""
+    h, w = seq[0][1].shape[:2]
+    rows = int(round(BODY_SHARE * h))
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (rows, w)).astype(np.float32), (0, 0), 2.0)
+    tex = np.clip((tex - tex.mean()) * 4.0 + 90.0, 0, 255).astype(np.uint8)
+    out = []
+    for t, im, T in seq:
+        im = im.copy()
+        im[h - rows:] = tex
+        out.append((t, im, T))
+    return out
+
+
+def hotpixels(seq: list, rng: np.random.Generator) -> list:
+    """Sensor defects: HOT_PIXEL_SHARE of the pixels stuck bright, as many dead."""
+    h, w = seq[0][1].shape[:2]
+    n = int(HOT_PIXEL_SHARE * h * w)
+    hot = (rng.integers(0, h, n), rng.integers(0, w, n))
+    dead = (rng.integers(0, h, n), rng.integers(0, w, n))
+    out = []
+    for t, im, T in seq:
+        im = im.copy()
+        im[hot] = 255
+        im[dead] = 0
+        out.append((t, im, T))
+    return out
+
+
+def dark(seq: list, rng: np.random.Generator) -> list:
+    """A dim scene: the image at DARK_GAIN of its brightness, with DARK_NOISE of noise."""
+    out = []
+    for t, im, T in seq:
+        noisy = im.astype(np.float32) * DARK_GAIN + rng.normal(0.0, DARK_NOISE, im.shape)
+        out.append((t, np.clip(noisy, 0, 255).astype(np.uint8), T))
+    return out
+
+
+def vignette(seq: list, rng: np.random.Generator) -> list:
+    """A lens's fall-off: cos^4 of the angle off axis, half the brightness at the corners."""
+    h, w = seq[0][1].shape[:2]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    r2 = ((u - w / 2) ** 2 + (v - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+    gain = 1.0 - 0.5 * r2
+    return [(t, np.clip(im * gain, 0, 255).astype(np.uint8), T) for t, im, T in seq]
+
+
+FAULTS = {'repeat': repeat, 'jitter': jitter, 'flicker': flicker, 'overlay': overlay,
+          'body': body, 'hotpixels': hotpixels, 'dark': dark, 'vignette': vignette}
 
 
 def apply(name: str, seq: list, seed: int) -> list:

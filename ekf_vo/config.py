@@ -96,6 +96,12 @@ class VoConfig(_Params):
     redetect_ratio: float = param(
         0.8, 'Detect new corners when fewer than this fraction of max_features survive.',
         '', 0.0, 1.0, group='front end')
+    camera_fixed_frames: int = param(
+        10, 'Image regions that move with the camera (the vehicle\'s body in view, a '
+        'clock burned into the image) are found by comparing each frame with the one this '
+        'many frames before: textured blocks at the image\'s border that stayed identical '
+        'while the rest of the image moved get no tracks (docs/method.md §6.10). 0: off.',
+        'frames', 0, 1000, group='front end')
 
     # ---- bootstrap (ekf_vo/core/bootstrap.py) ----
     bootstrap_min_parallax_deg: float = param(

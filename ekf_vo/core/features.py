@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from ekf_vo.config import VoConfig
+from .camera_fixed import CameraFixedRegions
 
 logger = logging.getLogger(__name__)
 
@@ -112,6 +113,10 @@ class TrackerStats:
     #: median distance [px] between a predicted track's prediction and where KLT found
     #: it, over the predicted tracks that converged from their prediction (0: none)
     prediction_miss_px: float = 0.0
+    #: tracks dropped because they lie in an image region fixed to the camera, and the
+    #: share of the image's blocks that were (camera_fixed.py)
+    n_camera_fixed: int = 0
+    camera_fixed_share: float = 0.0
     rejected_frame: str = ''
 
 
@@ -143,6 +148,7 @@ class FeatureTracker:
         # so equalising only the dark frames would break it between two frames.
         self._clahe = cv2.createCLAHE(clipLimit=clip, tileGridSize=(8, 8)) if clip > 0 \
             else None
+        self._fixed = CameraFixedRegions(int(cfg.camera_fixed_frames))
         self._next_id = 0
         self._stats = TrackerStats()
         self._pool: ThreadPoolExecutor | None = None
@@ -219,14 +225,18 @@ class FeatureTracker:
             logger.warning('image size changed %s -> %s: tracks reset',
                            self._prev_shape, (h, w))
             self.reset()
+            self._fixed.reset()
             stats.n_lost = n_prev
             n_prev = 0
+        fixed = self._fixed.update(gray)
+        stats.camera_fixed_share = float(fixed.mean()) if fixed.size else 0.0
 
         # (cv2.buildOpticalFlowPyramid cannot be reused here: the Python binding of
         # calcOpticalFlowPyrLK accepts images only, so it builds the pyramids itself.)
         if n_prev > 0 and self._prev_gray is not None:
             t_track = time.perf_counter()
             self._klt(gray, predicted, stats)
+            self._drop_camera_fixed(stats)
             stats.track_ms = (time.perf_counter() - t_track) * 1e3
 
         n_new = 0
@@ -380,6 +390,15 @@ class FeatureTracker:
         self._px = np.ascontiguousarray(p1[keep], np.float32)
         self._age = self._age[keep] + 1
 
+    def _drop_camera_fixed(self, stats: TrackerStats) -> None:
+        """Drop the tracks in image regions fixed to the camera (camera_fixed.py)."""
+        fixed = self._fixed.contains(self._px)
+        if fixed.any():
+            stats.n_camera_fixed = int(fixed.sum())
+            keep = ~fixed
+            self._ids, self._age = self._ids[keep], self._age[keep]
+            self._px = np.ascontiguousarray(self._px[keep])
+
     def _fb_passes(self, gray: np.ndarray, p0: np.ndarray, p1: np.ndarray,
                    start: np.ndarray) -> np.ndarray:
         """The backward check of forward results p1 (found from p0, starting at `start`):
@@ -417,6 +436,7 @@ class FeatureTracker:
         radius = max(int(round(self._min_dist)), 1)
         for u, v in np.rint(self._px).astype(np.int32):
             cv2.circle(mask, (int(u), int(v)), radius, 0, -1)
+        self._fixed.mask_out(mask)
 
         # Per-cell detection: the quality threshold is relative to each cell's best
         # corner, so weakly textured cells still get corners (bucketing as in

@@ -39,6 +39,11 @@ class _Reference:
     n_shared: int = 0
 
 
+#: before the map, a track within this of where the bootstrap reference saw it [px],
+#: while the reference's tracks moved by a median of STUCK_MEDIAN_PX or more, is taken
+#: for something fixed to the camera (Initialisation._moving)
+STUCK_PX = 0.2
+STUCK_MEDIAN_PX = 10.0
 #: a rolling shutter's rate fit before the map first accepts bearings this many times
 #: farther from a rotation than the chain does (rolling_shutter.py)
 RATE_FIT_LOOSENESS = 5.0
@@ -107,11 +112,12 @@ class Initialisation:
             res.message = 'bootstrap: rolling shutter, the first frame only gives the turn rate'
             return res
         chain = self.orientation if known_T is None else None
-        est = None if chain is None else chain.track(stamp_ns, tracks.ids, px)
         ref = self._ref
+        ids, px_m = self._moving(tracks.ids, px)
+        est = None if chain is None else chain.track(stamp_ns, ids, px_m)
         too_old = ref is not None and self.frame_index - ref.frame_index > \
             self.cfg.bootstrap_max_frames
-        n_common = 0 if ref is None else len(np.intersect1d(ref.ids, tracks.ids))
+        n_common = 0 if ref is None else len(np.intersect1d(ref.ids, ids))
         if ref is None or too_old or n_common < self.cfg.bootstrap_min_inliers:
             if len(tracks) >= self.cfg.bootstrap_min_inliers:
                 self._ref = _Reference(stamp_ns, self.frame_index, tracks.ids.copy(),
@@ -144,7 +150,7 @@ class Initialisation:
                 not chain.translating
             strict = slow and not chain.translation_seen
             gate = self.cfg.orientation_only_bootstrap_parallax_deg if slow else None
-            boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, tracks.ids, px,
+            boot = self.bootstrapper.try_pair(ref.ids, ref.px_ideal, ids, px_m,
                                               baseline=baseline, min_parallax_deg=gate,
                                               kept_share=n_common / max(ref.n_shared, 1))
             if chain is not None:
@@ -176,6 +182,29 @@ class Initialisation:
         res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
                        f'{boot.median_parallax_deg:.1f} deg')
         return res
+
+    def _moving(self, ids: np.ndarray, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The tracks (ids, ideal px) the bootstrap and the orientation chain use: all but
+        those that stayed within STUCK_PX of where the bootstrap reference saw them while
+        the reference's tracks moved by a median of STUCK_MEDIAN_PX or more. Such a track
+        is on something fixed to the camera (the vehicle's body, a burned-in clock) that
+        the front end has not yet been shown long enough to mask (camera_fixed.py,
+        docs/method.md §6.10): it says "no motion", and a zero flow satisfies every
+        essential matrix with little rotation. A world point that stays put (where a
+        straight drive heads) carries next to nothing for the pair either."""
+        ref = self._ref
+        if ref is None or not len(ids):
+            return ids, px
+        common, i_ref, i_cur = np.intersect1d(ref.ids, ids, assume_unique=True,
+                                              return_indices=True)
+        if len(common) < self.cfg.bootstrap_min_inliers:
+            return ids, px
+        d = np.linalg.norm(px[i_cur] - ref.px_ideal[i_ref], axis=1)
+        if float(np.median(d)) < STUCK_MEDIAN_PX:
+            return ids, px
+        keep = np.ones(len(ids), bool)
+        keep[i_cur[d < STUCK_PX]] = False
+        return ids[keep], px[keep]
 
     @staticmethod
     def _motion_time(ref: _Reference, prev, ids: np.ndarray, px: np.ndarray,

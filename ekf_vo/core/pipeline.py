@@ -182,6 +182,7 @@ class VisualOdometry(Initialisation, LossHandling):
             result = self._initialise(gray, stamp_ns, known_T_world_cam)
         self._last_stamp_ns = stamp_ns
         result.map_size = len(self.map)
+        result.camera_fixed_share = self.tracker.stats.camera_fixed_share
         result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
         return result
 

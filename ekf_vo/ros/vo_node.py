@@ -450,6 +450,7 @@ class VoNode(Node):
                 'latency_p95_ms': round(float(np.percentile(lat, 95)), 2),
                 'tracks': r.n_tracks if r else 0, 'inliers': r.n_inliers if r else 0,
                 'rays': r.n_rays if r else 0,
+                'camera_fixed_share': round(r.camera_fixed_share, 3) if r else 0.0,
                 'map_points': r.map_size if r else 0,
                 'resets': self.stream.n_resets}
         vals.update(self.stream.local_map_stats())
