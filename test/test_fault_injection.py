@@ -107,7 +107,7 @@ def test_faults_then_good_frames(tmp_path, demo):
         w, hgt = info['width'], info['height']
         bad = [raw_image(s + dt // 5, w, hgt, 'mono8', w - 1, bytes(w * hgt)),   # step
                raw_image(s + 2 * dt // 5, w, hgt, 'mono8', w, bytes(100)),      # truncated
-               raw_image(s + 3 * dt // 5, w, hgt, 'yuv422_yuy2', 2 * w,
+               raw_image(s + 3 * dt // 5, w, hgt, 'nv21', 2 * w,
                          bytes(2 * w * hgt)),                                    # encoding
                raw_image(s + 4 * dt // 5, 0, 0, 'mono8', 0, b'')]                # zero size
         # paced: a burst larger than the subscription depth (5) is DDS's to drop
