@@ -1,9 +1,9 @@
 """Image regions that move with the camera (docs/method.md §6.10).
 
 A robot's bumper or a car's bonnet in the view, a clock or a logo burned into the image:
-such content stays on the same pixels whatever the camera does. Its
-corners track perfectly, so no check of the tracker rejects them, and they never die.
-They say "no motion" with one voice: in a turn in place, when the map points leave the
+such content stays on the same pixels whatever the camera does. Its corners track
+perfectly, so no check of the tracker rejects them, and they never die. They say "no
+motion" with one voice: in a turn in place, when the map points leave the
 view and the tracks without depth carry the orientation (§15.8), they become a large,
 self-consistent share of the measurements and hold the rotation back; before the map,
 they drag the two-view geometry towards the identity.
@@ -22,16 +22,16 @@ for content fixed to the camera it is about zero.
   when at least MIN_BLOCKS such blocks touch and reach the image's border, with its
   neighbours (a patch on the border between the body and the world is half fixed).
   Tracks there are dropped and no corner is detected there.
-- **Why the border.** The world too can stand still in the image, where the camera is
-  heading (the focus of expansion of a straight drive, at the depth seen there) or
-  what it keeps its eyes on (a camera that pans as it moves sideways): the rendered
-  ground robot's far wall, the walk's first second), mostly inside the image and for a
-  moment. A vehicle's body enters the view from its edge and stays, and a burned-in
-  clock or logo sits in a corner or along an edge. Dirt on the lens in the middle of the
-  image is not found.
-- **Confirmed, then held.** A block is fixed once `frames` judgements in a row found it
-  so, and it stays fixed until a judgement sees it move; frames in which the camera is
-  not judged to have moved (a pause) keep the verdict.
+- **Why the border, and the confirmations.** The world too can stand still in the
+  image, where the camera is heading (the focus of expansion of a straight drive, at the
+  depth seen there) or what it keeps its eyes on (a camera that pans as it moves
+  sideways), as the rendered ground robot's far wall and the walk's first half second
+  do: mostly inside the image, and for a moment. A vehicle's body enters the view from
+  its edge and stays; a burned-in clock or logo sits in a corner or along an edge. Dirt
+  on the lens in the middle of the image is not found.
+- **Confirmed, then held.** A block is fixed once CONFIRMATIONS judgements in a row
+  found it so, and it stays fixed until a judgement sees it move; frames in which the
+  camera is not judged to have moved (a pause) keep the verdict.
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 
 #: median ratio of the textured blocks above which the camera has moved (content moved
-#: by about a pixel or more, typically)
+#: by about a pixel of the half-size image, two of the camera's, or more)
 MOVED_RATIO = 1.0
 #: ratio below which a textured block has not moved: about an eighth of a pixel of the
 #: half-size image the judgement runs on, a quarter of a pixel of the camera's (at a
@@ -53,10 +53,9 @@ FIXED_RATIO = 0.125
 TEXTURE_MIN = 2.0
 #: E|n1 - n2| of two independent N(0, sigma^2) samples, over sigma: 2 / sqrt(pi)
 _ABS_DIFF_PER_SIGMA = 2.0 / np.sqrt(np.pi)
-#: fewest blocks, side by side, of a region fixed to the camera: where the world stands
-#: still (the focus of expansion of a steady motion, at the depth seen there) it does so
-#: over a block or two, as on KITTI 06; a bumper, a bonnet or a burned-in clock covers
-#: tens
+#: fewest blocks, side by side, of a region fixed to the camera: a bumper, a bonnet or a
+#: burned-in clock covers tens; where the world stood still on KITTI 06 (judged at full
+#: resolution) it did so over one or two
 MIN_BLOCKS = 6
 #: judgements in a row that must find a block fixed before it is masked (with
 #: `frames` = 10: on the rendered sequences and KITTI 06 no block of the world ever was;
