@@ -41,12 +41,17 @@ def jitter(seq: list, rng: np.random.Generator) -> list:
     return sorted(out, key=lambda f: f[0])
 
 
+def _each_image(seq: list, change) -> list:
+    """`seq` with each image replaced by change(stamp ns, image), in stamp order (a
+    random draw inside `change` is made frame after frame)."""
+    return [(t, change(t, im), T) for t, im, T in seq]
+
+
 def flicker(seq: list, rng: np.random.Generator) -> list:
-    out = []
-    for t, im, T in seq:
+    def scaled(t, im):
         gain = 1.0 + FLICKER_GAIN * rng.uniform(-1.0, 1.0)
-        out.append((t, np.clip(im.astype(np.float32) * gain, 0, 255).astype(np.uint8), T))
-    return out
+        return np.clip(im.astype(np.float32) * gain, 0, 255).astype(np.uint8)
+    return _each_image(seq, scaled)
 
 
 #: the burned-in clock's text height as a share of the image height
@@ -62,18 +67,16 @@ DARK_GAIN, DARK_NOISE = 0.2, 2.0
 def overlay(seq: list, rng: np.random.Generator) -> list:
     """A clock burned into the image (a dashcam's or a security camera's): white text on a
     black box in the top-left corner, its seconds and milliseconds changing every frame."""
-    out = []
-    for t, im, T in seq:
+    def stamped(t, im):
         im = im.copy()
-        h = im.shape[0]
-        scale = OVERLAY_HEIGHT * h / 22.0
+        scale = OVERLAY_HEIGHT * im.shape[0] / 22.0
         text = f'2026-11-26 16:{(t // 60_000_000_000) % 60:02d}:{(t // 1_000_000_000) % 60:02d}' \
                f'.{(t // 1_000_000) % 1000:03d}'
         (w, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 2)
         cv2.rectangle(im, (0, 0), (w + 8, th + base + 8), 0, -1)
         cv2.putText(im, text, (4, th + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, 255, 2)
-        out.append((t, im, T))
-    return out
+        return im
+    return _each_image(seq, stamped)
 
 
 def body(seq: list, rng: np.random.Generator) -> list:
@@ -83,12 +86,12 @@ def body(seq: list, rng: np.random.Generator) -> list:
     rows = int(round(BODY_SHARE * h))
     tex = cv2.GaussianBlur(rng.uniform(0, 255, (rows, w)).astype(np.float32), (0, 0), 2.0)
     tex = np.clip((tex - tex.mean()) * 4.0 + 90.0, 0, 255).astype(np.uint8)
-    out = []
-    for t, im, T in seq:
+
+    def covered(t, im):
         im = im.copy()
         im[h - rows:] = tex
-        out.append((t, im, T))
-    return out
+        return im
+    return _each_image(seq, covered)
 
 
 def hotpixels(seq: list, rng: np.random.Generator) -> list:
@@ -97,31 +100,31 @@ def hotpixels(seq: list, rng: np.random.Generator) -> list:
     n = int(HOT_PIXEL_SHARE * h * w)
     hot = (rng.integers(0, h, n), rng.integers(0, w, n))
     dead = (rng.integers(0, h, n), rng.integers(0, w, n))
-    out = []
-    for t, im, T in seq:
+
+    def defective(t, im):
         im = im.copy()
         im[hot] = 255
         im[dead] = 0
-        out.append((t, im, T))
-    return out
+        return im
+    return _each_image(seq, defective)
 
 
 def dark(seq: list, rng: np.random.Generator) -> list:
     """A dim scene: the image at DARK_GAIN of its brightness, with DARK_NOISE of noise."""
-    out = []
-    for t, im, T in seq:
+    def dimmed(t, im):
         noisy = im.astype(np.float32) * DARK_GAIN + rng.normal(0.0, DARK_NOISE, im.shape)
-        out.append((t, np.clip(noisy, 0, 255).astype(np.uint8), T))
-    return out
+        return np.clip(noisy, 0, 255).astype(np.uint8)
+    return _each_image(seq, dimmed)
 
 
 def vignette(seq: list, rng: np.random.Generator) -> list:
-    """A lens's fall-off: cos^4 of the angle off axis, half the brightness at the corners."""
+    """A lens's fall-off: a gain of 1 - 0.5 r^2, r the distance from the centre over the
+    half-diagonal, so half the brightness in the corners."""
     h, w = seq[0][1].shape[:2]
     v, u = np.mgrid[0:h, 0:w].astype(np.float32)
     r2 = ((u - w / 2) ** 2 + (v - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
     gain = 1.0 - 0.5 * r2
-    return [(t, np.clip(im * gain, 0, 255).astype(np.uint8), T) for t, im, T in seq]
+    return _each_image(seq, lambda t, im: np.clip(im * gain, 0, 255).astype(np.uint8))
 
 
 FAULTS = {'repeat': repeat, 'jitter': jitter, 'flicker': flicker, 'overlay': overlay,
