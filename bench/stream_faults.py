@@ -62,6 +62,8 @@ BODY_SHARE = 0.15
 HOT_PIXEL_SHARE = 0.001
 #: a dim scene: the exposure's gain, and the sensor noise that then shows [grey levels]
 DARK_GAIN, DARK_NOISE = 0.2, 2.0
+#: the lens's loss of brightness in the corners
+VIGNETTE_DROP = 0.5
 
 
 def overlay(seq: list, rng: np.random.Generator) -> list:
@@ -118,12 +120,12 @@ def dark(seq: list, rng: np.random.Generator) -> list:
 
 
 def vignette(seq: list, rng: np.random.Generator) -> list:
-    """A lens's fall-off: a gain of 1 - 0.5 r^2, r the distance from the centre over the
-    half-diagonal, so half the brightness in the corners."""
+    """A lens's fall-off: a gain of 1 - VIGNETTE_DROP r^2, r the distance from the centre
+    over the half-diagonal (half the brightness in the corners)."""
     h, w = seq[0][1].shape[:2]
     v, u = np.mgrid[0:h, 0:w].astype(np.float32)
     r2 = ((u - w / 2) ** 2 + (v - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
-    gain = 1.0 - 0.5 * r2
+    gain = 1.0 - VIGNETTE_DROP * r2
     return _each_image(seq, lambda t, im: np.clip(im * gain, 0, 255).astype(np.uint8))
 
 

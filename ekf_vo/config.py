@@ -96,6 +96,12 @@ class VoConfig(_Params):
     redetect_ratio: float = param(
         0.8, 'Detect new corners when fewer than this fraction of max_features survive.',
         '', 0.0, 1.0, group='front end')
+    lens_falloff: bool = param(
+        True, 'Estimate the lens\'s fall-off of brightness towards the corners '
+        '(vignetting) from the tracks, and divide it out of every image before tracking '
+        'once the image is found darker by more than 15 % as far out as the tracks reach '
+        '(docs/method.md §6.11). '
+        'False: images are tracked as they come.', group='front end')
     camera_fixed_frames: int = param(
         10, 'Image regions that move with the camera (the vehicle\'s body in view, a '
         'clock burned into the image) are found by comparing each frame with the one this '

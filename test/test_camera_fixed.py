@@ -14,6 +14,8 @@ from ekf_vo.core.camera_fixed import CONFIRMATIONS, CameraFixedRegions
 from ekf_vo.core.features import FeatureTracker
 from ekf_vo.tools.demo import load_demo_frames
 
+from .support.rendered import rotation_errors_deg
+
 W, H = 640, 480
 BAND = 72                      # rows of the fixed band at the bottom (the vehicle's body)
 FRAMES = 10
@@ -126,27 +128,12 @@ def test_off_the_tracker_keeps_the_band():
     tracker.close()
 
 
-def _rotation_errors_deg(trajectory: str, seed: int, fault: str, overrides: dict):
-    """Every published orientation's error [deg] (aligned at the first published pose)
-    on a rendered sequence through a stream fault of bench/stream_faults.py, and the
-    share of frames published after the first."""
-    from bench import rotation_nees as bench
-    gt_s, gt_T, out = bench._synthetic(trajectory, seed, overrides, fault=fault)
-    stamps, poses, _, oks, _, _ = out
-    first = oks.index(True)
-    k = np.searchsorted(gt_s, stamps - 1e-6)
-    R0 = gt_T[k[0]][:3, :3] @ poses[0][:3, :3].T
-    err = [np.degrees(np.linalg.norm(cv2.Rodrigues(gt_T[i][:3, :3] @ (R0 @ P[:3, :3]).T)[0]))
-           for i, P in zip(k, poses)]
-    return np.array(err), float(np.mean(oks[first:]))
-
-
 def test_a_camera_turning_with_the_body_in_view_keeps_its_orientation():
     """The rendered hand-held camera (turns of +-30 deg) with a textured body over the
     bottom 15 % of the view (bench/stream_faults.py `body`). Before the front end's
     judgement and the bootstrap's rule for stuck tracks (Initialisation._moving), the
     body's tracks kept the orientation from ever being published on seed 0; now every
     frame after the first pose is published within 3 deg."""
-    err, published = _rotation_errors_deg('handheld_rotation', 0, 'body', {})
+    err, published = rotation_errors_deg('handheld_rotation', 0, 'body', {})
     assert published == 1.0
     assert err.max() < 3.0

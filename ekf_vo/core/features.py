@@ -36,6 +36,7 @@ import numpy as np
 
 from ekf_vo.config import VoConfig
 from .camera_fixed import CameraFixedRegions
+from .vignetting import LensFalloff
 
 logger = logging.getLogger(__name__)
 
@@ -149,6 +150,7 @@ class FeatureTracker:
         self._clahe = cv2.createCLAHE(clipLimit=clip, tileGridSize=(8, 8)) if clip > 0 \
             else None
         self._fixed = CameraFixedRegions(int(cfg.camera_fixed_frames))
+        self.falloff = LensFalloff(bool(cfg.lens_falloff))
         self._next_id = 0
         self._stats = TrackerStats()
         self._pool: ThreadPoolExecutor | None = None
@@ -207,9 +209,8 @@ class FeatureTracker:
         if not reason:
             if gray.ndim == 3:
                 gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
-            gray = np.ascontiguousarray(gray)
-            if self._clahe is not None:
-                gray = self._clahe.apply(gray)
+            raw = np.ascontiguousarray(gray)
+            gray = self._corrected(raw)
             # Contrast is judged after the optional CLAHE: it is what KLT will see.
             reason = self._check_contrast(gray)
         if reason:
@@ -233,11 +234,15 @@ class FeatureTracker:
 
         # (cv2.buildOpticalFlowPyramid cannot be reused here: the Python binding of
         # calcOpticalFlowPyrLK accepts images only, so it builds the pyramids itself.)
+        pairs = (np.empty((0, 2)), np.empty((0, 2)))
         if n_prev > 0 and self._prev_gray is not None:
             t_track = time.perf_counter()
-            self._klt(gray, predicted, stats)
+            pairs = self._klt(gray, predicted, stats)
             self._drop_camera_fixed(stats)
             stats.track_ms = (time.perf_counter() - t_track) * 1e3
+        if self.falloff.observe(raw, *pairs):
+            # a new correction: this frame, which the next is tracked from, under it
+            gray = self._corrected(raw)
 
         n_new = 0
         t_detect = time.perf_counter()
@@ -274,6 +279,14 @@ class FeatureTracker:
                       n_new, self._stats.n_lost)
 
     # ------------------------------------------------------------------ internals
+
+    def _corrected(self, raw: np.ndarray) -> np.ndarray:
+        """What KLT and the detector see of the grey image `raw`: the lens's fall-off in
+        force divided out (vignetting.py), then the optional CLAHE."""
+        gray = self.falloff.correct(raw)
+        if self._clahe is not None:
+            gray = self._clahe.apply(gray)
+        return gray
 
     @staticmethod
     def _check_frame(gray: object) -> str:
@@ -340,8 +353,10 @@ class FeatureTracker:
         p_to = p_to.reshape(-1, 2)
         return p_to, (st.reshape(-1) == 1) & np.isfinite(p_to).all(axis=1)
 
-    def _klt(self, gray: np.ndarray, predicted: object, stats: TrackerStats) -> None:
-        """Move the live tracks into the new frame; drop failures in place.
+    def _klt(self, gray: np.ndarray, predicted: object, stats: TrackerStats
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """Move the live tracks into the new frame; drop failures in place. Returns the
+        kept tracks' positions (N, 2) in the previous frame and in this one.
 
         Each call of calcOpticalFlowPyrLK rebuilds both images' pyramids (~1 ms at
         1226x370; the Python binding takes no prebuilt pyramid), so the calls are few
@@ -389,6 +404,7 @@ class FeatureTracker:
         self._ids = self._ids[keep]
         self._px = np.ascontiguousarray(p1[keep], np.float32)
         self._age = self._age[keep] + 1
+        return p0[keep], self._px
 
     def _drop_camera_fixed(self, stats: TrackerStats) -> None:
         """Drop the tracks in image regions fixed to the camera (camera_fixed.py)."""

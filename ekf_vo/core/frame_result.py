@@ -49,6 +49,9 @@ class FrameResult:
     found_share: float = 1.0                #: inliers / map points the prior put in view
     #: share of the image fixed to the camera, whose corners are not used (camera_fixed.py)
     camera_fixed_share: float = 0.0
+    #: the corners' loss of brightness of the lens fall-off divided out of the images, 0
+    #: while none is (vignetting.py)
+    lens_falloff_drop: float = 0.0
     message: str = ''                       #: why not ok / what happened
     #: wall-clock ms of the stages this frame ran: predict, track (KLT and detection),
     #: detect (the detection alone, a part of track), update, map, local_map, refind,

@@ -183,6 +183,7 @@ class VisualOdometry(Initialisation, LossHandling):
         self._last_stamp_ns = stamp_ns
         result.map_size = len(self.map)
         result.camera_fixed_share = self.tracker.stats.camera_fixed_share
+        result.lens_falloff_drop = self.tracker.falloff.applied_drop
         result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
         return result
 

@@ -451,6 +451,7 @@ class VoNode(Node):
                 'tracks': r.n_tracks if r else 0, 'inliers': r.n_inliers if r else 0,
                 'rays': r.n_rays if r else 0,
                 'camera_fixed_share': round(r.camera_fixed_share, 3) if r else 0.0,
+                'lens_falloff_drop': round(r.lens_falloff_drop, 3) if r else 0.0,
                 'map_points': r.map_size if r else 0,
                 'resets': self.stream.n_resets}
         vals.update(self.stream.local_map_stats())
