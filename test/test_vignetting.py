@@ -31,7 +31,8 @@ def _world() -> np.ndarray:
 
 WORLD = _world()
 _V, _U = np.mgrid[0:H, 0:W].astype(np.float32)
-R2 = ((_U - (W - 1) / 2) ** 2 + (_V - (H - 1) / 2) ** 2) / (((W - 1) / 2) ** 2 + ((H - 1) / 2) ** 2)
+R2 = ((_U - (W - 1) / 2) ** 2 + (_V - (H - 1) / 2) ** 2) \
+    / (((W - 1) / 2) ** 2 + ((H - 1) / 2) ** 2)
 
 
 def _frame(k: int, drop: float = 0.0, exposure: float = 1.0, noise_seed: int = 0

@@ -30,11 +30,11 @@ points say nothing and are left out.
 tracks' reach, the radius REACH_QUANTILE of the samples lie within (beyond it the fit
 is an extrapolation, and no track cares). Once it says the image is darker there by
 more than APPLY_DROP, and differs from none by APPLY_SIGMAS of its standard deviations,
-every image is divided by V(r) before tracking and detection. It is updated when the fit, from the
-pairs tracked under the correction, moves V by more than UPDATE_DROP anywhere within the
-reach. Without a fall-off (KITTI 06 at 5-8 %, the dino at 4 %, the demo and the renders
-at about 0) nothing is applied, and the tracker sees the images as they come; a lens
-that falls off by less costs KLT little (§6.11).
+every image is divided by V(r) before tracking and detection. It is updated when the
+fit, from the pairs tracked under the correction, moves V by more than UPDATE_DROP
+anywhere within the reach. Without a fall-off (KITTI 06 at 5-8 %, the dino at 4 %, the
+demo and the renders at about 0) nothing is applied, and the tracker sees the images as
+they come; a lens that falls off by less costs KLT little (§6.11).
 """
 from __future__ import annotations
 
@@ -79,7 +79,8 @@ class LensFalloff:
 
     def reset(self) -> None:
         """Forget everything (a new image size)."""
-        #: per frame pair since the correction in force was put in force: (x1, x2, y)
+        #: per frame pair since the correction in force was put in force, one row per
+        #: sample: (x1, x2, y, r^2 in this frame)
         self._samples: deque[np.ndarray] = deque()
         self.n_samples = 0
         self.n_pairs_seen = 0               # frame pairs learnt from, all told
@@ -92,7 +93,6 @@ class LensFalloff:
         self._r2: np.ndarray | None = None
         self._gain: np.ndarray | None = None
         self._prev: np.ndarray | None = None
-        self.changed = False
 
     def brightness(self, r: float, applied: bool = False) -> float:
         """V(r): the brightness at r (over the half-diagonal) relative to the centre, of
@@ -104,12 +104,6 @@ class LensFalloff:
     def n_pairs(self) -> int:
         """Frame pairs learnt from since the correction in force was put in force."""
         return len(self._samples)
-
-    @property
-    def reach_drop(self) -> float:
-        """1 - V(reach) of the current estimate: the loss of brightness at the radius
-        the tracks reach."""
-        return 1.0 - self.brightness(self.reach)
 
     @property
     def corner_drop(self) -> float:
@@ -132,7 +126,6 @@ class LensFalloff:
         """Learn from the tracks that went from p_prev (N, 2) in the previous frame to
         p_cur in `gray` (the raw, uncorrected image). Returns True when the correction in
         force changed (the caller corrects the previous frame again with `correct`)."""
-        self.changed = False
         if not self.enabled:
             return False
         h, w = gray.shape
@@ -198,8 +191,8 @@ class LensFalloff:
         # none: the first fits, from pairs that barely moved, said 14-19 % (2.5-3.5 of
         # their standard deviations) on the rendered drone's seed 7, a lens without a
         # fall-off; the drone through a lens with one said 18 % at 11 of them
-        log_v = float(self.coeffs @ (self.reach ** 2, self.reach ** 4))
-        if not in_force and (self.reach_drop < APPLY_DROP
+        log_v = math.log(self.brightness(self.reach))
+        if not in_force and (1.0 - math.exp(log_v) < APPLY_DROP
                              or -log_v < APPLY_SIGMAS * self.reach_sigma):
             return False
         if in_force and max(abs(self.brightness(r) - self.brightness(r, applied=True))
@@ -213,7 +206,6 @@ class LensFalloff:
         self.n_samples = 0
         a, b = self.applied
         self._gain = np.exp(-(a * self._r2 + b * self._r2 ** 2)).astype(np.float32)
-        self.changed = True
         return True
 
 
