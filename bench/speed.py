@@ -5,11 +5,12 @@
 ``--detect-threads 1`` runs the corner detection in the calling thread only, as releases
 before docs/method.md §17.8 did (the corners are the same; only the time differs).
 
-    python -m bench.speed [--repeat 3] [--detect-threads 1]
+    python -m bench.speed [--repeat 3] [--detect-threads 1] [--set NAME=VALUE ...]
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 
@@ -19,7 +20,7 @@ from ekf_vo.config import VoConfig
 from ekf_vo.core import features
 from ekf_vo.core.stream import VoStream
 from ekf_vo.tools.demo import load_demo_frames
-from .common import machine, shared_data
+from .common import machine, overrides_or_report, shared_data
 
 def load_kitti_frames() -> tuple[dict, list] | None:
     from ekf_vo.io.dataset import load_folder
@@ -60,16 +61,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--detect-threads', type=int, choices=(1, 2), default=2,
                         help='1: detection in the calling thread only (the release '
                         'before docs/method.md §17.8)')
+    parser.add_argument('--set', nargs='+', default=[], metavar='NAME=VALUE',
+                        help='configuration overrides (the defaults otherwise)')
     args = parser.parse_args(argv)
+    overrides = overrides_or_report(args.set, 'bench.speed')
+    if overrides is None:
+        return 2
+    cfg = dataclasses.replace(VoConfig(), **overrides).validate()
     if args.detect_threads == 1:
         features._PARALLEL_MIN_CELLS = sys.maxsize
-    print(f'machine: {machine()}, detection on {args.detect_threads} thread(s)')
+    print(f'machine: {machine()}, detection on {args.detect_threads} thread(s)'
+          + (f', overrides {overrides}' if overrides else ''))
     runs = [('demo bag', load_demo_frames())]
     kitti = load_kitti_frames()
     if kitti is not None:
         runs.append(('KITTI 06', kitti))
     for name, (info, frames) in runs:
-        r = time_core(info, frames, repeat=args.repeat)
+        r = time_core(info, frames, cfg, repeat=args.repeat)
         stages = ', '.join(f'{k} {v:.1f}' for k, v in r['stage_ms_mean'].items()
                            if k != 'total')
         print(f'{name:<9} {r["resolution"]:>9}: {r["fps"]:6.1f} frames/s, total '

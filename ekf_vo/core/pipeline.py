@@ -47,6 +47,13 @@ from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigma
 from .orientation_only import OrientationChain
 from .refind import MapPointFinder
 from .relocalise import Relocaliser
+
+#: A frame whose tracks landed a median of more than this [px] from their prediction
+#: (after the plain-KLT retry) is a jolt the motion model did not follow (docs/method.md
+#: §7.5): a brightness flicker misses by 2-7 px, a jolt by 18-58 px. Fixed in pixels, not
+#: a share of the KLT window: the window is chosen for the tracks' precision (§5.1), and a
+#: smaller one must not turn a flicker into a loss.
+JOLT_MISS_PX = 10.5
 from .rolling_shutter import (points_on_rays, rotation_to_stamp_time,
                               translation_to_stamp_time)
 from .rotation_check import KeyframeRotationJudge
@@ -336,13 +343,13 @@ class VisualOdometry(Initialisation, LossHandling):
 
     def _motion_model_lost(self, n_found: float, n_in_view: int) -> str:
         """Why this frame is a jolt the state cannot follow, or '' (docs/method.md
-        §7.5, §15.10): the plain KLT retry ran, the tracks kept landed over half a KLT
-        window from their prediction (a flicker's miss by 2-7 px), and the map in view
-        is not found. Its few inliers would carry a wrong pose on (18 deg, DEGRADED)."""
+        §7.5, §15.10): the plain KLT retry ran, the tracks kept landed more than
+        JOLT_MISS_PX from their prediction (a flicker's miss is 2-7 px), and the map in
+        view is not found. Its few inliers would carry a wrong pose on (18 deg, DEGRADED)."""
         c = self.cfg
         klt = self.tracker.stats
         found = found_share(n_found, n_in_view)
-        if klt.n_prediction_retried and klt.prediction_miss_px > 0.5 * c.klt_window_px \
+        if klt.n_prediction_retried and klt.prediction_miss_px > JOLT_MISS_PX \
                 and n_in_view >= 2 * c.min_tracking_inliers \
                 and found < c.health_min_found_share:
             return (f'the motion model lost the camera: tracks '
