@@ -183,8 +183,6 @@ def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
     scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory,
                        **{**TRAJECTORY_CAMERAS.get(trajectory, {}), **CAMERAS.get(camera, {})})
     seq = list(render_sequence(scfg))
-    if camera == 'jpeg':
-        seq = [(s, _jpeg(im), T) for s, im, T in seq]
     dt = seq[1][0] - seq[0][0]
     if speedup > 1:            # every k-th frame, at the renderer's frame interval
         seq = [(seq[0][0] + k * dt, im, T) for k, (_, im, T) in enumerate(seq[::speedup])]
@@ -197,6 +195,10 @@ def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
         seq = standing + [(t + still * dt, im, T) for t, im, T in seq]
     if fault:
         seq = stream_faults.apply(fault, seq, seed)
+    if camera == 'jpeg':
+        # the encoder comes after the sensor and the optics (vignetting, flicker, a clock
+        # burned in); the stream's timing faults (repeat, jitter) commute with it
+        seq = [(s, _jpeg(im), T) for s, im, T in seq]
     info = {'width': scfg.width, 'height': scfg.height, 'K': scfg.K(), 'D': scfg.D(),
             'distortion_model': 'plumb_bob'}
     gt_s = np.array([s for s, _, _ in seq]) * 1e-9
