@@ -540,8 +540,9 @@ def _precise_reading(pp: dict) -> str:
 what is left is mostly the tracks' own error: `python -m bench.track_precision`
 triangulates every track from all its views under the TRUE poses, and even so the default
 21 px KLT window leaves KITTI 06 at about 52 % precise in 80 % of its images and the
-rendered walk at about 71 % (docs/method.md §6.1: a 13 px window is more precise, 55 % and
-87 %, but loses tracks under flicker, so it is not the default). Li et al. keep points in
+rendered walk at about 71 % (docs/method.md §6.1: with `klt_window_px: 13`, 55 % and 87 %,
+and this section's figures rise to 57 % and 92 %; it is not the default because it loses
+more tracks in fast motion). Li et al. keep points in
 the filter and refine their depth over >= 10 observations before freezing them (our
 optional equivalent: docs/method.md §8). The median and p90 reprojection errors in the
 table show how far above the 1 px threshold our imprecise points are.""")

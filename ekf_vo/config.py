@@ -83,7 +83,20 @@ class VoConfig(_Params):
         'depths (docs/method.md §15.14). Set it from the sensor\'s datasheet: a wrong '
         'value is as bad as none. 0: a global shutter.',
         's', 0.0, 1.0, group='front end')
-    klt_window_px: int = param(21, 'KLT search window side.', 'px', 5, 101, group='front end')
+    klt_window_px: int = param(
+        21, 'KLT window side while the light is steady. A smaller one is more precise and '
+        'faster (13: KITTI, dino, the demo and the renders gain) but loses more tracks in '
+        'fast motion (docs/method.md §6.1).', 'px', 5, 101, group='front end')
+    klt_flicker_window_px: int = param(
+        21, 'KLT window side while the brightness changes from frame to frame (a flicker, '
+        'a hunting auto-exposure) and for the first frames, before it is measured: a '
+        'larger window loses fewer tracks then (docs/method.md §6.1). 0: always '
+        'klt_window_px.', 'px', 0, 101, group='front end')
+    klt_flicker_log_gain: float = param(
+        0.04, 'The light counts as changing when the root mean square, over the last 10 '
+        'frame pairs, of the log brightness ratio at the tracks exceeds this (or one pair '
+        'exceeds twice it); it counts as steady again 30 frames after the last such pair.',
+        '', 0.0, 1.0, group='front end')
     klt_pyramid_levels: int = param(
         4, 'KLT pyramid levels (more levels follow faster motion).', 'count', 0, 8,
         group='front end')

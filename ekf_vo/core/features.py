@@ -36,6 +36,7 @@ import numpy as np
 
 from ekf_vo.config import VoConfig
 from .camera_fixed import CameraFixedRegions
+from .exposure import ExposureChange
 from .vignetting import LensFalloff
 
 logger = logging.getLogger(__name__)
@@ -118,6 +119,10 @@ class TrackerStats:
     #: share of the image's blocks that were (camera_fixed.py)
     n_camera_fixed: int = 0
     camera_fixed_share: float = 0.0
+    #: the KLT window side [px] the next frame is tracked with, and the root mean square
+    #: of the recent frame pairs' log brightness ratios that chose it (exposure.py)
+    klt_window_px: int = 0
+    exposure_log_gain_rms: float = 0.0
     rejected_frame: str = ''
 
 
@@ -126,20 +131,31 @@ class FeatureTracker:
 
     Args:
         cfg: uses max_features, grid_rows, grid_cols, min_feature_distance_px,
-            corner_quality, klt_window_px, klt_pyramid_levels, klt_fb_max_px,
+            corner_quality, klt_window_px, klt_flicker_window_px, klt_flicker_log_gain,
+            klt_pyramid_levels, klt_fb_max_px,
             redetect_ratio; optionally `clahe_clip_limit` (0 disables; not in VoConfig
             yet, read with getattr).
 
     Motion range: with a window of w px and L pyramid levels, KLT converges for flows of
-    roughly (w / 2) * 2**L px (defaults 21 px, 4 levels: ~160 px), enough for KITTI at
-    10 Hz (50-100 px near the borders) and hand-held 640x480 video at 30 Hz. A prior
-    (`predicted`) extends it further.
+    roughly (w / 2) * 2**L px (defaults 21 px, 4 levels: ~160 px; ~100 px with 13 px),
+    enough for KITTI at 10 Hz (50-100 px near the borders) and hand-held 640x480 video at
+    30 Hz. A prior (`predicted`) extends it further.
+
+    Window: klt_flicker_window_px until the brightness change between frames has been
+    measured at the tracks, then klt_window_px while it stays below klt_flicker_log_gain,
+    klt_flicker_window_px again when it does not (exposure.py, docs/method.md §6.1). Both
+    are 21 px by default, so the choice only matters when klt_window_px is set smaller.
     """
 
     def __init__(self, cfg: VoConfig) -> None:
         self.cfg = cfg
-        win = int(cfg.klt_window_px) | 1            # odd window: centred on the point
-        self._win = (win, win)
+        # odd windows, centred on the point: the steady light's, and the flicker's
+        # (docs/method.md §6.1; the flicker's is also the start's, until measured)
+        self._steady_win = int(cfg.klt_window_px) | 1
+        flicker = int(cfg.klt_flicker_window_px)
+        self._flicker_win = (flicker | 1) if flicker > 0 else self._steady_win
+        self._win = (self._flicker_win, self._flicker_win)
+        self.exposure = ExposureChange(float(cfg.klt_flicker_log_gain))
         self._levels = int(cfg.klt_pyramid_levels)
         self._fb_max = float(cfg.klt_fb_max_px)
         self._max_features = int(cfg.max_features)
@@ -227,6 +243,7 @@ class FeatureTracker:
                            self._prev_shape, (h, w))
             self.reset()
             self._fixed.reset()
+            self.exposure.reset()
             stats.n_lost = n_prev
             n_prev = 0
         fixed = self._fixed.update(gray)
@@ -240,6 +257,11 @@ class FeatureTracker:
             pairs = self._klt(gray, predicted, stats)
             self._drop_camera_fixed(stats)
             stats.track_ms = (time.perf_counter() - t_track) * 1e3
+        self.exposure.observe(raw, *pairs)
+        win = self._steady_win if self.exposure.steady else self._flicker_win
+        self._win = (win, win)
+        stats.klt_window_px = win
+        stats.exposure_log_gain_rms = self.exposure.rms_log_gain
         if self.falloff.observe(raw, *pairs):
             # a new correction: this frame, which the next is tracked from, under it
             gray = self._corrected(raw)

@@ -156,8 +156,8 @@ class LensFalloff:
                  (c0[:, 1] < h - m) & (c1[:, 0] >= m) & (c1[:, 0] < w - m) & \
                  (c1[:, 1] >= m) & (c1[:, 1] < h - m)
         c0, c1 = c0[inside], c1[inside]
-        i0 = _square_mean(prev, c0)
-        i1 = _square_mean(integral, c1)
+        i0 = square_mean(prev, c0)
+        i1 = square_mean(integral, c1)
         lit = (i0 >= GREY_MIN) & (i0 <= GREY_MAX) & (i1 >= GREY_MIN) & (i1 <= GREY_MAX)
         if np.count_nonzero(lit) < MIN_PAIR_SAMPLES:
             return
@@ -212,17 +212,17 @@ class LensFalloff:
 #: radii, over the tracks' reach, at which the estimate and the correction in force are
 #: compared
 _RADII = np.array((0.25, 0.5, 0.75, 1.0))
-#: side of a point's square [px]
-_SIDE = 2 * SAMPLE_HALF_PX + 1
 
 
-def _square_mean(integral: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """Mean grey level over the square of SAMPLE_HALF_PX around each of `centres` (N, 2)
-    int (u, v), all at least SAMPLE_HALF_PX inside the image, from its integral image."""
-    u0, v0 = centres[:, 0] - SAMPLE_HALF_PX, centres[:, 1] - SAMPLE_HALF_PX
-    u1, v1 = u0 + _SIDE, v0 + _SIDE
+def square_mean(integral: np.ndarray, centres: np.ndarray, half: int = SAMPLE_HALF_PX
+                ) -> np.ndarray:
+    """Mean grey level over the square of `half` px around each of `centres` (N, 2)
+    int (u, v), all at least `half` inside the image, from its integral image."""
+    side = 2 * half + 1
+    u0, v0 = centres[:, 0] - half, centres[:, 1] - half
+    u1, v1 = u0 + side, v0 + side
     total = integral[v1, u1] - integral[v0, u1] - integral[v1, u0] + integral[v0, u0]
-    return total.astype(np.float64) / (_SIDE * _SIDE)
+    return total.astype(np.float64) / (side * side)
 
 
 def _huber_fit(blocks: list[np.ndarray], start: np.ndarray | None

@@ -1,0 +1,92 @@
+"""Is the light steady? The brightness change between frames, measured at the tracks.
+
+docs/method.md §6.1. A translational KLT window is more precise the smaller it is
+(bench/track_precision.py), but under a gain that changes from frame to frame (a light
+that flickers, an auto-exposure that hunts) a small window loses far more tracks than a
+large one. So the tracker can use a small window (`klt_window_px`) while the light is
+steady, and the large one (`klt_flicker_window_px`) from the first sign it is not. Both
+are 21 px by default: a small window also loses more tracks in fast motion (§6.1), so it
+is the user's choice.
+
+The measure: for each frame pair, the median over the tracks of log(m1 / m0), where m0
+and m1 are the grey-level means of a 31x31 square around a track in the previous frame
+and in this one. The square is large because the gain moves the tracks themselves: KLT,
+which has no gain in its model, shifts a corner towards darker or brighter pixels to
+match it, and a 7x7 mean (the lens fall-off's, vignetting.py) around the shifted corner
+then saw a 6 % gain as 1 %. Its root mean square over the last
+`WINDOW_PAIRS` pairs is compared with `klt_flicker_log_gain`; a single pair at twice
+that is enough. KITTI's auto-exposure moves it by 1-2 % a frame; a +-10 % flicker by
+about 8 %.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import cv2
+import numpy as np
+
+from .vignetting import GREY_MAX, GREY_MIN, square_mean
+
+#: frame pairs whose log gains make the root mean square
+WINDOW_PAIRS = 10
+#: pairs measured before the light may be called steady (the start is judged flickering)
+WARMUP_PAIRS = 5
+#: frames the light stays "not steady" after the last change that exceeded the threshold
+HOLD_FRAMES = 30
+#: a single pair beyond this many times the threshold is a change on its own
+SPIKE_FACTOR = 2.0
+#: fewest well-exposed tracks for a pair to be measured
+MIN_SAMPLES = 20
+#: half the side [px] of the square whose mean grey level is compared
+HALF_SQUARE_PX = 15
+
+
+class ExposureChange:
+    """The frame-to-frame brightness change at the tracks, and whether the light is
+    steady (`steady`)."""
+
+    def __init__(self, threshold: float) -> None:
+        self.threshold = float(threshold)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the frames seen (a new image size, a new stream)."""
+        self._prev: np.ndarray | None = None
+        self._gains: deque = deque(maxlen=WINDOW_PAIRS)
+        self._hold = 0
+        #: log gain of the last measured pair, and the root mean square over the window
+        self.last_log_gain = 0.0
+        self.rms_log_gain = 0.0
+
+    @property
+    def steady(self) -> bool:
+        """True when the recent pairs changed brightness by less than the threshold."""
+        return len(self._gains) >= WARMUP_PAIRS and self._hold == 0
+
+    def observe(self, gray: np.ndarray, p_prev: np.ndarray, p_cur: np.ndarray) -> None:
+        """Measure the pair (previous frame, `gray`) at the tracks that went from p_prev
+        (N, 2) to p_cur (raw pixels, the uncorrected image)."""
+        integral = cv2.integral(gray, sdepth=cv2.CV_32S)
+        prev, self._prev = self._prev, integral
+        if prev is None or prev.shape != integral.shape or len(p_cur) < MIN_SAMPLES:
+            return
+        h, w = gray.shape
+        m = HALF_SQUARE_PX
+        c0 = np.rint(np.asarray(p_prev)).astype(np.int64)
+        c1 = np.rint(np.asarray(p_cur)).astype(np.int64)
+        inside = ((c0 >= m) & (c0 < [w - m, h - m]) & (c1 >= m) &
+                  (c1 < [w - m, h - m])).all(axis=1)
+        i0 = square_mean(prev, c0[inside], HALF_SQUARE_PX)
+        i1 = square_mean(integral, c1[inside], HALF_SQUARE_PX)
+        lit = (i0 >= GREY_MIN) & (i0 <= GREY_MAX) & (i1 >= GREY_MIN) & (i1 <= GREY_MAX)
+        if np.count_nonzero(lit) < MIN_SAMPLES:
+            return
+        g = float(np.median(np.log(i1[lit]) - np.log(i0[lit])))
+        self._gains.append(g)
+        self.last_log_gain = g
+        self.rms_log_gain = math.sqrt(float(np.mean(np.square(self._gains))))
+        if self.rms_log_gain > self.threshold or abs(g) > SPIKE_FACTOR * self.threshold:
+            self._hold = HOLD_FRAMES
+        elif self._hold > 0:
+            self._hold -= 1
