@@ -15,8 +15,8 @@ which has no gain in its model, shifts a corner towards darker or brighter pixel
 match it, and a 7x7 mean (the lens fall-off's, vignetting.py) around the shifted corner
 then saw a 6 % gain as 1 %. Its root mean square over the last
 `WINDOW_PAIRS` pairs is compared with `klt_flicker_log_gain`; a single pair at twice
-that is enough. KITTI's auto-exposure moves it by 1-2 % a frame; a +-10 % flicker by
-about 8 %.
+that is enough. On KITTI 06 (a car's auto-exposure) the root mean square peaks at 0.035
+(one pair at 0.061); under a +-10 % flicker it is about 0.08.
 """
 from __future__ import annotations
 

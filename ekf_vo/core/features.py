@@ -257,7 +257,8 @@ class FeatureTracker:
             pairs = self._klt(gray, predicted, stats)
             self._drop_camera_fixed(stats)
             stats.track_ms = (time.perf_counter() - t_track) * 1e3
-        self.exposure.observe(raw, *pairs)
+        if self._steady_win != self._flicker_win:    # else there is nothing to choose
+            self.exposure.observe(raw, *pairs)
         win = self._steady_win if self.exposure.steady else self._flicker_win
         self._win = (win, win)
         stats.klt_window_px = win
