@@ -52,8 +52,7 @@ def _tracks(frames, cfg: VoConfig) -> dict[int, list[tuple[int, np.ndarray]]]:
     return obs
 
 
-def _triangulate(P: np.ndarray, T_cam_world: np.ndarray, uv: np.ndarray
-                 ) -> np.ndarray | None:
+def _triangulate(P: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
     """A point from n >= 3 views: DLT on the projection matrices P (n,3,4), then 10
     Huber-weighted Gauss-Newton steps on the undistorted pixels uv (n,2). None when it
     lies behind a camera."""
@@ -92,7 +91,7 @@ def floor(obs: dict, T_world_cam: np.ndarray, camera: PinholeCamera) -> dict:
             continue
         fr = np.array([v[0] for v in views])
         uv = camera.undistort(np.array([v[1] for v in views], np.float64))
-        X = _triangulate(P_all[fr], T_cam_world[fr], uv)
+        X = _triangulate(P_all[fr], uv)
         if X is None:
             continue
         a, b = X - centres[fr[0]], X - centres[fr[-1]]
