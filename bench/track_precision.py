@@ -15,6 +15,7 @@ KITTI's ground truth (GPS/INS) is itself off by a few hundredths of a degree (0.
 error; the renders' poses are exact.
 
     python -m bench.track_precision [--sequences kitti walk car] [--windows 21 15 13 11]
+                                    [--set NAME=VALUE ...]
                                     [--json OUT]
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 from ekf_vo.config import VoConfig
 from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.features import FeatureTracker
-from .common import machine, shared_data, write_json
+from .common import machine, overrides_or_report, shared_data, write_json
 
 #: observations a track needs to be scored (a point from two views fits them exactly)
 MIN_VIEWS = 3
@@ -143,10 +144,16 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='bench.track_precision', description=__doc__.split('\n')[0])
     p.add_argument('--sequences', nargs='+', default=['kitti', 'walk', 'car'])
     p.add_argument('--windows', nargs='+', type=int, default=[21, 15, 13, 11])
+    p.add_argument('--set', nargs='+', default=[], metavar='NAME=VALUE',
+                   help='configuration overrides beside each window (the defaults '
+                   'otherwise)')
     p.add_argument('--json', type=Path)
     args = p.parse_args(argv)
-    print(f'machine: {machine()}')
-    out: dict = {'machine': machine(), 'results': []}
+    overrides = overrides_or_report(args.set, 'bench.track_precision')
+    if overrides is None:
+        return 2
+    print(f'machine: {machine()}' + (f', overrides {overrides}' if overrides else ''))
+    out: dict = {'machine': machine(), 'overrides': overrides, 'results': []}
     print('| sequence | window px | tracks scored | residual median / p90 px | '
           'precise: mean / in 80 % of images |')
     print('|---|---|---|---|---|')
@@ -157,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
             continue
         camera, frames, T = seq
         for w in args.windows:
-            cfg = dataclasses.replace(VoConfig(), klt_window_px=w).validate()
+            cfg = dataclasses.replace(VoConfig(), **{**overrides, 'klt_window_px': w}
+                                      ).validate()
             r = {'sequence': name, 'window_px': w,
                  **floor(_tracks(frames, cfg), T, camera)}
             out['results'].append(r)

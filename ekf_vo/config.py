@@ -97,6 +97,12 @@ class VoConfig(_Params):
         'frame pairs, of the log brightness ratio at the tracks exceeds this (or one pair '
         'exceeds twice it); it counts as steady again 30 frames after the last such pair.',
         '', 0.0, 1.0, group='front end')
+    klt_gain_compensation: bool = param(
+        False, 'Before KLT, measure the brightness change from the previous frame (31x31 '
+        'grey means at the tracks and at their predicted positions) and divide it out of '
+        'the new frame: KLT has no gain in its model, and a 2 % change already moves a '
+        'tenth of the tracks by 0.4-1.8 px on KITTI (docs/method.md §6.1). '
+        'False: frames are tracked as they come.', group='front end')
     klt_pyramid_levels: int = param(
         4, 'KLT pyramid levels (more levels follow faster motion).', 'count', 0, 8,
         group='front end')

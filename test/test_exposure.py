@@ -104,3 +104,44 @@ def test_by_default_the_window_is_21_px_whatever_the_light(world) -> None:
         tracker.track(_frame(world, k, 1.0))
         assert tracker.stats.klt_window_px == 21
     tracker.close()
+
+
+def _pan_errors(world: np.ndarray, gains, compensate: bool
+                ) -> tuple[np.ndarray, list[float]]:
+    """Track the panned frames under `gains`; each pair's track displacement error
+    against the known pan [px], and the log gain divided out of each frame."""
+    tracker = FeatureTracker(VoConfig(klt_gain_compensation=compensate))
+    prev, errors, divided = None, [], []
+    for k, gain in enumerate(gains):
+        tracks = tracker.track(_frame(world, k, gain))
+        divided.append(tracker.stats.klt_log_gain)
+        if prev is not None:
+            _, i0, i1 = np.intersect1d(prev.ids, tracks.ids, return_indices=True)
+            # the view moves by +STEP, so the content moves by -STEP in the image
+            errors.append(np.linalg.norm(tracks.px[i1] - prev.px[i0] + STEP, axis=1))
+        prev = tracks
+    tracker.close()
+    return np.concatenate(errors), divided
+
+
+FLICKER = [1.0, 1.1, 0.92, 1.08, 0.9, 1.1, 0.95, 1.05]
+
+
+def test_the_gain_is_divided_out_before_klt_and_tracks_follow_the_pan(world) -> None:
+    errors, divided = _pan_errors(world, FLICKER, compensate=True)
+    assert divided[0] == 0.0                             # nothing to compare with
+    np.testing.assert_allclose(divided[1:], np.diff(np.log(FLICKER)), atol=0.01)
+    assert np.percentile(errors, 90) < 0.5
+
+
+def test_without_compensation_the_flicker_moves_and_loses_tracks(world) -> None:
+    errors_on, _ = _pan_errors(world, FLICKER, compensate=True)
+    errors_off, divided = _pan_errors(world, FLICKER, compensate=False)
+    assert divided == [0.0] * len(FLICKER)
+    assert np.median(errors_off) > 5 * np.median(errors_on)
+    assert len(errors_off) < 0.5 * len(errors_on)       # pairs that survived KLT + FB
+
+
+def test_a_steady_light_is_not_touched(world) -> None:
+    _, divided = _pan_errors(world, [1.0] * 6, compensate=True)
+    assert divided == [0.0] * 6

@@ -69,20 +69,11 @@ class ExposureChange:
         (N, 2) to p_cur (raw pixels, the uncorrected image)."""
         integral = cv2.integral(gray, sdepth=cv2.CV_32S)
         prev, self._prev = self._prev, integral
-        if prev is None or prev.shape != integral.shape or len(p_cur) < MIN_SAMPLES:
+        if prev is None or prev.shape != integral.shape:
             return
-        h, w = gray.shape
-        m = HALF_SQUARE_PX
-        c0 = np.rint(np.asarray(p_prev)).astype(np.int64)
-        c1 = np.rint(np.asarray(p_cur)).astype(np.int64)
-        inside = ((c0 >= m) & (c0 < [w - m, h - m]) & (c1 >= m) &
-                  (c1 < [w - m, h - m])).all(axis=1)
-        i0 = square_mean(prev, c0[inside], HALF_SQUARE_PX)
-        i1 = square_mean(integral, c1[inside], HALF_SQUARE_PX)
-        lit = (i0 >= GREY_MIN) & (i0 <= GREY_MAX) & (i1 >= GREY_MIN) & (i1 <= GREY_MAX)
-        if np.count_nonzero(lit) < MIN_SAMPLES:
+        g = log_gain(prev, integral, p_prev, p_cur)
+        if g is None:
             return
-        g = float(np.median(np.log(i1[lit]) - np.log(i0[lit])))
         self._gains.append(g)
         self.last_log_gain = g
         self.rms_log_gain = math.sqrt(float(np.mean(np.square(self._gains))))
@@ -90,3 +81,26 @@ class ExposureChange:
             self._hold = HOLD_FRAMES
         elif self._hold > 0:
             self._hold -= 1
+
+
+def log_gain(integral0: np.ndarray, integral1: np.ndarray, p0: np.ndarray,
+             p1: np.ndarray) -> float | None:
+    """The brightness change from one frame to the next: the median over the points of
+    log(m1 / m0), m0 and m1 the grey-level means of the 31x31 square around p0 (N, 2) in
+    the first frame and around p1 in the second (integral images of the same size, from
+    cv2.integral). Squares that leave the image or are under- or over-exposed in either
+    frame do not count; None when fewer than MIN_SAMPLES remain."""
+    if len(p1) < MIN_SAMPLES:
+        return None
+    h, w = integral1.shape[0] - 1, integral1.shape[1] - 1
+    m = HALF_SQUARE_PX
+    c0 = np.rint(np.asarray(p0, np.float64)).astype(np.int64)
+    c1 = np.rint(np.asarray(p1, np.float64)).astype(np.int64)
+    inside = ((c0 >= m) & (c0 < [w - m, h - m]) & (c1 >= m) &
+              (c1 < [w - m, h - m])).all(axis=1)
+    i0 = square_mean(integral0, c0[inside], m)
+    i1 = square_mean(integral1, c1[inside], m)
+    lit = (i0 >= GREY_MIN) & (i0 <= GREY_MAX) & (i1 >= GREY_MIN) & (i1 <= GREY_MAX)
+    if np.count_nonzero(lit) < MIN_SAMPLES:
+        return None
+    return float(np.median(np.log(i1[lit]) - np.log(i0[lit])))

@@ -36,7 +36,7 @@ import numpy as np
 
 from ekf_vo.config import VoConfig
 from .camera_fixed import CameraFixedRegions
-from .exposure import ExposureChange
+from .exposure import ExposureChange, log_gain
 from .vignetting import LensFalloff
 
 logger = logging.getLogger(__name__)
@@ -51,6 +51,9 @@ _MIN_CONTRAST_GREY = 2.0
 _MIN_IMAGE_SIDE = 16
 #: KLT stop criterion: 30 iterations or a step below 0.01 px (OpenCV sample values).
 _KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+#: A measured brightness change smaller than this (log ratio) is not divided out: under
+#: it, the frame would change by less than one grey level almost everywhere.
+_MIN_COMPENSATED_LOG_GAIN = 0.003
 #: The plain KLT retry runs when at least this share of the predicted tracks failed.
 _RETRY_MIN_FAILED_SHARE = 0.5
 #: Shi-Tomasi block size (pixels) of the structure tensor.
@@ -123,6 +126,9 @@ class TrackerStats:
     #: of the recent frame pairs' log brightness ratios that chose it (exposure.py)
     klt_window_px: int = 0
     exposure_log_gain_rms: float = 0.0
+    #: the log brightness ratio divided out of this frame before KLT (0: none;
+    #: klt_gain_compensation)
+    klt_log_gain: float = 0.0
     rejected_frame: str = ''
 
 
@@ -157,6 +163,7 @@ class FeatureTracker:
         self._win = (self._flicker_win, self._flicker_win)
         self.exposure = ExposureChange(float(cfg.klt_flicker_log_gain))
         self._levels = int(cfg.klt_pyramid_levels)
+        self._gain_compensation = bool(cfg.klt_gain_compensation)
         self._fb_max = float(cfg.klt_fb_max_px)
         self._max_features = int(cfg.max_features)
         self._min_dist = float(cfg.min_feature_distance_px)
@@ -183,6 +190,7 @@ class FeatureTracker:
     def reset(self) -> None:
         """Forget all tracks and the previous frame; ids keep counting (never reused)."""
         self._prev_gray: np.ndarray | None = None
+        self._prev_integral: np.ndarray | None = None     # of _prev_gray, when computed
         self._prev_shape: tuple[int, int] | None = None
         self._ids = np.empty(0, np.int64)
         self._px = np.empty((0, 2), np.float32)
@@ -252,6 +260,7 @@ class FeatureTracker:
         # (cv2.buildOpticalFlowPyramid cannot be reused here: the Python binding of
         # calcOpticalFlowPyrLK accepts images only, so it builds the pyramids itself.)
         pairs = (np.empty((0, 2)), np.empty((0, 2)))
+        self._integral = None
         if n_prev > 0 and self._prev_gray is not None:
             t_track = time.perf_counter()
             pairs = self._klt(gray, predicted, stats)
@@ -266,6 +275,7 @@ class FeatureTracker:
         if self.falloff.observe(raw, *pairs):
             # a new correction: this frame, which the next is tracked from, under it
             gray = self._corrected(raw)
+            self._integral = None
 
         n_new = 0
         t_detect = time.perf_counter()
@@ -275,6 +285,7 @@ class FeatureTracker:
         stats.detect_ms = (time.perf_counter() - t_detect) * 1e3
 
         self._prev_gray = gray
+        self._prev_integral = self._integral
         self._prev_shape = (h, w)
         stats.n_tracked = int(self._ids.shape[0])
         stats.n_new = n_new
@@ -401,6 +412,7 @@ class FeatureTracker:
         p0 = self._px
         init, used = self._prior(predicted)
         stats.n_predicted = int(used.sum())
+        gray = self._gain_compensated(gray, p0, init, stats)
         p1, ok = self._lk(self._prev_gray, gray, p0, init)
         if (ok & used).any():
             stats.prediction_miss_px = float(np.median(np.linalg.norm(
@@ -428,6 +440,30 @@ class FeatureTracker:
         self._px = np.ascontiguousarray(p1[keep], np.float32)
         self._age = self._age[keep] + 1
         return p0[keep], self._px
+
+    def _gain_compensated(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
+                          stats: TrackerStats) -> np.ndarray:
+        """`gray` with the brightness change from the previous frame divided out, when
+        klt_gain_compensation is on and the change is measurable (else `gray` itself).
+
+        KLT matches grey levels and has no gain in its model: a change of a few percent
+        moves tracks by pixels (docs/method.md §6.1). The change is measured before KLT,
+        as the median log ratio of 31x31 grey means around the tracks in the previous
+        frame and around where KLT will start them in this one (exposure.log_gain):
+        squares that large hardly change under a few pixels of prediction error. Only KLT
+        sees the compensated frame; the frame kept for the next pair is `gray` as it
+        came, so the gains do not accumulate."""
+        if not self._gain_compensation:
+            return gray
+        if self._prev_integral is None:
+            self._prev_integral = cv2.integral(self._prev_gray, sdepth=cv2.CV_32S)
+        self._integral = cv2.integral(gray, sdepth=cv2.CV_32S)
+        g = log_gain(self._prev_integral, self._integral, p0, start)
+        if g is None or abs(g) < _MIN_COMPENSATED_LOG_GAIN:
+            return gray
+        stats.klt_log_gain = g
+        lut = np.clip(np.rint(np.arange(256) * math.exp(-g)), 0, 255).astype(np.uint8)
+        return cv2.LUT(gray, lut)
 
     def _drop_camera_fixed(self, stats: TrackerStats) -> None:
         """Drop the tracks in image regions fixed to the camera (camera_fixed.py)."""
