@@ -26,8 +26,9 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   ``_rs`` (30 ms), ``_rs10``, ``_jpeg``: ``handheld_rotation_hd``, see CAMERAS): the same
   motion seen through another lens or sensor (docs/method.md §15.13). ``car`` and
   ``car_turn`` drive down a rendered street through KITTI's camera (§15.16). With
-  ``_repeat``, ``_jitter``, ``_flicker``, ``_overlay``, ``_body``, ``_hotpixels``,
-  ``_dark`` or ``_vignette`` (``orbit_repeat``, ``walk_x3_jitter``, ``ground_robot_body``):
+  ``_repeat``, ``_jitter``, ``_flicker``, ``_exposure``, ``_overlay``, ``_body``,
+  ``_hotpixels``, ``_dark`` or ``_vignette`` (``orbit_repeat``, ``walk_x3_jitter``,
+  ``ground_robot_body``):
   what a camera driver, the sensor or the camera's mounting does to the stream
   (bench/stream_faults.py, §6.10).
 

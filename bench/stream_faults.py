@@ -1,6 +1,6 @@
 """What a camera, its driver or its mounting does to a stream, applied to a rendered
 sequence (bench.rotation_nees suffixes ``_repeat``, ``_jitter``, ``_flicker``,
-``_overlay``, ``_body``, ``_hotpixels``, ``_dark``, ``_vignette``; docs/ros.md §5, §7, §8,
+``_exposure``, ``_overlay``, ``_body``, ``_hotpixels``, ``_dark``, ``_vignette``; docs/ros.md §5, §7, §8,
 docs/method.md §3.5, §6.1, §6.10). Each takes and returns [(stamp ns, image,
 T_world_cam)], in stamp order; the ground truth of a frame stays that of the image it
 carries.
@@ -10,6 +10,8 @@ carries.
 - ``jitter``: every stamp moved by N(0, JITTER_S) (a driver that stamps on arrival);
 - ``flicker``: every image scaled by a gain uniform in 1 +- FLICKER_GAIN (lamps at the
   mains frequency, an auto-exposure that hunts);
+- ``exposure``: the scene's light jumps now and then (a door, a shadow, a cloud) and the
+  camera's auto-exposure brings the image back, overshooting a little (EXPOSURE_*);
 - ``overlay``: a clock burned into the top-left corner (a dashcam, a security camera);
 - ``body``: the vehicle's own body over the bottom BODY_SHARE of the view;
 - ``hotpixels``: stuck bright and dead sensor pixels;
@@ -24,6 +26,12 @@ import numpy as np
 REPEAT_SHARE = 0.2
 JITTER_S = 0.005
 FLICKER_GAIN = 0.1
+#: the auto-exposure: the light jumps on average every EXPOSURE_JUMP_FRAMES frames by a
+#: factor whose log is uniform within +-log(EXPOSURE_JUMP_MAX); the exposure answers as a
+#: damped second-order loop, rate <- A rate + B error, in log units (settles in about 8
+#: frames, undershooting by 5 %; a 2x jump shows as 1.84, then 1.63, 1.43, 1.26, ...)
+EXPOSURE_JUMP_FRAMES, EXPOSURE_JUMP_MAX = 60, 2.0
+EXPOSURE_LOOP_A, EXPOSURE_LOOP_B = 0.6, 0.12
 
 
 def repeat(seq: list, rng: np.random.Generator) -> list:
@@ -52,6 +60,20 @@ def flicker(seq: list, rng: np.random.Generator) -> list:
         gain = 1.0 + FLICKER_GAIN * rng.uniform(-1.0, 1.0)
         return np.clip(im.astype(np.float32) * gain, 0, 255).astype(np.uint8)
     return _each_image(seq, scaled)
+
+
+def exposure(seq: list, rng: np.random.Generator) -> list:
+    log_light, log_exposure, rate = 0.0, 0.0, 0.0
+
+    def exposed(t, im):
+        nonlocal log_light, log_exposure, rate
+        if rng.uniform() < 1.0 / EXPOSURE_JUMP_FRAMES:
+            log_light += np.log(EXPOSURE_JUMP_MAX) * rng.uniform(-1.0, 1.0)
+        rate = EXPOSURE_LOOP_A * rate + EXPOSURE_LOOP_B * (-log_light - log_exposure)
+        log_exposure += rate
+        gain = np.exp(log_light + log_exposure)
+        return np.clip(im.astype(np.float32) * gain, 0, 255).astype(np.uint8)
+    return _each_image(seq, exposed)
 
 
 #: the burned-in clock's text height as a share of the image height
@@ -129,8 +151,9 @@ def vignette(seq: list, rng: np.random.Generator) -> list:
     return _each_image(seq, lambda t, im: np.clip(im * gain, 0, 255).astype(np.uint8))
 
 
-FAULTS = {'repeat': repeat, 'jitter': jitter, 'flicker': flicker, 'overlay': overlay,
-          'body': body, 'hotpixels': hotpixels, 'dark': dark, 'vignette': vignette}
+FAULTS = {'repeat': repeat, 'jitter': jitter, 'flicker': flicker, 'exposure': exposure,
+          'overlay': overlay, 'body': body, 'hotpixels': hotpixels, 'dark': dark,
+          'vignette': vignette}
 
 
 def apply(name: str, seq: list, seed: int) -> list:

@@ -95,14 +95,18 @@ class VoConfig(_Params):
     klt_flicker_log_gain: float = param(
         0.04, 'The light counts as changing when the root mean square, over the last 10 '
         'frame pairs, of the log brightness ratio at the tracks exceeds this (or one pair '
-        'exceeds twice it); it counts as steady again 30 frames after the last such pair.',
+        'exceeds twice it); it counts as steady again 30 frames after the last such pair. '
+        'While it changes, KLT uses klt_flicker_window_px and, with '
+        'klt_gain_compensation, the gain is divided out before KLT.',
         '', 0.0, 1.0, group='front end')
     klt_gain_compensation: bool = param(
-        False, 'Before KLT, measure the brightness change from the previous frame (31x31 '
-        'grey means at the tracks and at their predicted positions) and divide it out of '
-        'the new frame: KLT has no gain in its model, and a 2 % change already moves a '
-        'tenth of the tracks by 0.4-1.8 px on KITTI (docs/method.md §6.1). '
-        'False: frames are tracked as they come.', group='front end')
+        True, 'While the light changes (klt_flicker_log_gain: a flicker, an auto-exposure '
+        'answering a jump of the light) or on a single jump, measure the brightness '
+        'change from the previous frame before KLT (31x31 grey means around the tracks '
+        'and where KLT starts them) and divide it out of the frame KLT sees: KLT has no '
+        'gain in its model, and a 10 % change moves a tenth of the tracks by 7-33 px '
+        '(docs/method.md §6.1). False: frames are tracked as they come.',
+        group='front end')
     klt_pyramid_levels: int = param(
         4, 'KLT pyramid levels (more levels follow faster motion).', 'count', 0, 8,
         group='front end')

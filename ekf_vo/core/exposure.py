@@ -40,6 +40,14 @@ SPIKE_FACTOR = 2.0
 MIN_SAMPLES = 20
 #: half the side [px] of the square whose mean grey level is compared
 HALF_SQUARE_PX = 15
+#: a change is common to the tracks, a gain of the whole frame, when its log ratio is at
+#: least this many times the spread of the tracks' own (1.4826 x their median absolute
+#: deviation): under a rendered flicker the median over pairs is 9-11; on KITTI 06,
+#: where each patch's brightness changes on its own by about 3 % as the car drives, below
+#: 1 (at twice its frame interval at most 2.9 for a single pair, about 1 over ten)
+COMMON_RATIO = 3.0
+#: the smallest spread a ratio is taken against (a noise-free render has none)
+_MIN_SPREAD = 1e-3
 
 
 class ExposureChange:
@@ -54,42 +62,68 @@ class ExposureChange:
         """Forget the frames seen (a new image size, a new stream)."""
         self._prev: np.ndarray | None = None
         self._gains: deque = deque(maxlen=WINDOW_PAIRS)
+        self._commonness: deque = deque(maxlen=WINDOW_PAIRS)   # |log gain| / spread
         self._hold = 0
         #: log gain of the last measured pair, and the root mean square over the window
         self.last_log_gain = 0.0
         self.rms_log_gain = 0.0
 
     @property
+    def changing(self) -> bool:
+        """True while a recent pair changed brightness by more than the threshold (its
+        root mean square over the window, or a single pair at SPIKE_FACTOR times it),
+        and for HOLD_FRAMES frames after the last one."""
+        return self._hold > 0
+
+    @property
+    def common(self) -> bool:
+        """True when the recent pairs' changes were common to their tracks (the median
+        over the window of |log gain| / spread at least COMMON_RATIO): a gain of the whole
+        frame, which can be divided out, rather than each patch changing on its own."""
+        return bool(self._commonness) and \
+            float(np.median(self._commonness)) >= COMMON_RATIO
+
+    def is_spike(self, log_gain: float) -> bool:
+        """True when one pair's log gain is a change on its own."""
+        return abs(log_gain) > SPIKE_FACTOR * self.threshold
+
+    @property
     def steady(self) -> bool:
         """True when the recent pairs changed brightness by less than the threshold."""
         return len(self._gains) >= WARMUP_PAIRS and self._hold == 0
 
-    def observe(self, gray: np.ndarray, p_prev: np.ndarray, p_cur: np.ndarray) -> None:
+    def observe(self, gray: np.ndarray, p_prev: np.ndarray, p_cur: np.ndarray,
+                integral: np.ndarray | None = None) -> None:
         """Measure the pair (previous frame, `gray`) at the tracks that went from p_prev
-        (N, 2) to p_cur (raw pixels, the uncorrected image)."""
-        integral = cv2.integral(gray, sdepth=cv2.CV_32S)
+        (N, 2) to p_cur (raw pixels, the uncorrected image; `integral` its cv2.integral,
+        CV_32S, when the caller has it)."""
+        if integral is None:
+            integral = cv2.integral(gray, sdepth=cv2.CV_32S)
         prev, self._prev = self._prev, integral
         if prev is None or prev.shape != integral.shape:
             return
-        g = log_gain(prev, integral, p_prev, p_cur)
-        if g is None:
+        measured = log_gain(prev, integral, p_prev, p_cur)
+        if measured is None:
             return
+        g, spread = measured
         self._gains.append(g)
+        self._commonness.append(abs(g) / max(spread, _MIN_SPREAD))
         self.last_log_gain = g
         self.rms_log_gain = math.sqrt(float(np.mean(np.square(self._gains))))
-        if self.rms_log_gain > self.threshold or abs(g) > SPIKE_FACTOR * self.threshold:
+        if self.rms_log_gain > self.threshold or self.is_spike(g):
             self._hold = HOLD_FRAMES
         elif self._hold > 0:
             self._hold -= 1
 
 
 def log_gain(integral0: np.ndarray, integral1: np.ndarray, p0: np.ndarray,
-             p1: np.ndarray) -> float | None:
+             p1: np.ndarray) -> tuple[float, float] | None:
     """The brightness change from one frame to the next: the median over the points of
     log(m1 / m0), m0 and m1 the grey-level means of the 31x31 square around p0 (N, 2) in
     the first frame and around p1 in the second (integral images of the same size, from
-    cv2.integral). Squares that leave the image or are under- or over-exposed in either
-    frame do not count; None when fewer than MIN_SAMPLES remain."""
+    cv2.integral); and the spread of the points' own log ratios around it (1.4826 x their
+    median absolute deviation). Squares that leave the image or are under- or
+    over-exposed in either frame do not count; None when fewer than MIN_SAMPLES remain."""
     if len(p1) < MIN_SAMPLES:
         return None
     h, w = integral1.shape[0] - 1, integral1.shape[1] - 1
@@ -103,4 +137,6 @@ def log_gain(integral0: np.ndarray, integral1: np.ndarray, p0: np.ndarray,
     lit = (i0 >= GREY_MIN) & (i0 <= GREY_MAX) & (i1 >= GREY_MIN) & (i1 <= GREY_MAX)
     if np.count_nonzero(lit) < MIN_SAMPLES:
         return None
-    return float(np.median(np.log(i1[lit]) - np.log(i0[lit])))
+    ratios = np.log(i1[lit]) - np.log(i0[lit])
+    g = float(np.median(ratios))
+    return g, 1.4826 * float(np.median(np.abs(ratios - g)))

@@ -36,7 +36,7 @@ import numpy as np
 
 from ekf_vo.config import VoConfig
 from .camera_fixed import CameraFixedRegions
-from .exposure import ExposureChange, log_gain
+from .exposure import COMMON_RATIO, ExposureChange, log_gain
 from .vignetting import LensFalloff
 
 logger = logging.getLogger(__name__)
@@ -54,6 +54,10 @@ _KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 #: A measured brightness change smaller than this (log ratio) is not divided out: under
 #: it, the frame would change by less than one grey level almost everywhere.
 _MIN_COMPENSATED_LOG_GAIN = 0.003
+#: KLT runs again when the gain measured around the tracks it found differs by more than
+#: this (log ratio) from the one measured before it and divided out: 1 % still moves a
+#: tenth of KITTI's tracks by 0.2-0.7 px.
+_GAIN_RECHECK_LOG = 0.01
 #: The plain KLT retry runs when at least this share of the predicted tracks failed.
 _RETRY_MIN_FAILED_SHARE = 0.5
 #: Shi-Tomasi block size (pixels) of the structure tensor.
@@ -129,6 +133,8 @@ class TrackerStats:
     #: the log brightness ratio divided out of this frame before KLT (0: none;
     #: klt_gain_compensation)
     klt_log_gain: float = 0.0
+    #: 1 when KLT ran a second time because the gain measured after it disagreed
+    n_gain_rechecked: int = 0
     rejected_frame: str = ''
 
 
@@ -164,6 +170,9 @@ class FeatureTracker:
         self.exposure = ExposureChange(float(cfg.klt_flicker_log_gain))
         self._levels = int(cfg.klt_pyramid_levels)
         self._gain_compensation = bool(cfg.klt_gain_compensation)
+        # the brightness change is measured when it chooses the window or is divided out
+        self._observes_exposure = self._steady_win != self._flicker_win or \
+            self._gain_compensation
         self._fb_max = float(cfg.klt_fb_max_px)
         self._max_features = int(cfg.max_features)
         self._min_dist = float(cfg.min_feature_distance_px)
@@ -191,6 +200,8 @@ class FeatureTracker:
         """Forget all tracks and the previous frame; ids keep counting (never reused)."""
         self._prev_gray: np.ndarray | None = None
         self._prev_integral: np.ndarray | None = None     # of _prev_gray, when computed
+        self._integral: np.ndarray | None = None          # of this frame's, when computed
+        self._raw_integral: np.ndarray | None = None      # of this frame's raw image
         self._prev_shape: tuple[int, int] | None = None
         self._ids = np.empty(0, np.int64)
         self._px = np.empty((0, 2), np.float32)
@@ -235,6 +246,10 @@ class FeatureTracker:
                 gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
             raw = np.ascontiguousarray(gray)
             gray = self._corrected(raw)
+            # one integral image of the raw frame serves the lens fall-off, the exposure
+            # and, when nothing corrects the frame, the gain before KLT (0.1-0.4 ms each)
+            self._raw_integral = cv2.integral(raw, sdepth=cv2.CV_32S) \
+                if self.falloff.enabled or self._observes_exposure else None
             # Contrast is judged after the optional CLAHE: it is what KLT will see.
             reason = self._check_contrast(gray)
         if reason:
@@ -263,16 +278,17 @@ class FeatureTracker:
         self._integral = None
         if n_prev > 0 and self._prev_gray is not None:
             t_track = time.perf_counter()
-            pairs = self._klt(gray, predicted, stats)
+            pairs = self._klt(gray, predicted, stats,
+                              self._raw_integral if gray is raw else None)
             self._drop_camera_fixed(stats)
             stats.track_ms = (time.perf_counter() - t_track) * 1e3
-        if self._steady_win != self._flicker_win:    # else there is nothing to choose
-            self.exposure.observe(raw, *pairs)
+        if self._observes_exposure:
+            self.exposure.observe(raw, *pairs, integral=self._raw_integral)
         win = self._steady_win if self.exposure.steady else self._flicker_win
         self._win = (win, win)
         stats.klt_window_px = win
         stats.exposure_log_gain_rms = self.exposure.rms_log_gain
-        if self.falloff.observe(raw, *pairs):
+        if self.falloff.observe(raw, *pairs, integral=self._raw_integral):
             # a new correction: this frame, which the next is tracked from, under it
             gray = self._corrected(raw)
             self._integral = None
@@ -387,8 +403,8 @@ class FeatureTracker:
         p_to = p_to.reshape(-1, 2)
         return p_to, (st.reshape(-1) == 1) & np.isfinite(p_to).all(axis=1)
 
-    def _klt(self, gray: np.ndarray, predicted: object, stats: TrackerStats
-             ) -> tuple[np.ndarray, np.ndarray]:
+    def _klt(self, gray: np.ndarray, predicted: object, stats: TrackerStats,
+             gray_integral: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Move the live tracks into the new frame; drop failures in place. Returns the
         kept tracks' positions (N, 2) in the previous frame and in this one.
 
@@ -412,8 +428,20 @@ class FeatureTracker:
         p0 = self._px
         init, used = self._prior(predicted)
         stats.n_predicted = int(used.sum())
-        gray = self._gain_compensated(gray, p0, init, stats)
+        g = self._gain_to_divide(gray, p0, init, gray_integral)
+        raw_gray, gray = gray, (gray if g is None else self._divided(gray, g))
         p1, ok = self._lk(self._prev_gray, gray, p0, init)
+        if g is not None:
+            # The gain again, around where KLT found the tracks: before KLT, a fast turn
+            # puts the squares off by more than their size can absorb (2-4 % off on the
+            # rendered hand-held camera, which then drifted; docs/method.md §6.1).
+            found = log_gain(self._prev_integral, self._integral, p0[ok], p1[ok])
+            if found is not None and abs(found[0] - g) > _GAIN_RECHECK_LOG:
+                g = found[0]
+                gray = self._divided(raw_gray, g)
+                p1, ok = self._lk(self._prev_gray, gray, p0, init)
+                stats.n_gain_rechecked = 1
+            stats.klt_log_gain = g if abs(g) >= _MIN_COMPENSATED_LOG_GAIN else 0.0
         if (ok & used).any():
             stats.prediction_miss_px = float(np.median(np.linalg.norm(
                 (p1 - init)[ok & used], axis=1)))
@@ -441,29 +469,51 @@ class FeatureTracker:
         self._age = self._age[keep] + 1
         return p0[keep], self._px
 
-    def _gain_compensated(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
-                          stats: TrackerStats) -> np.ndarray:
-        """`gray` with the brightness change from the previous frame divided out, when
-        klt_gain_compensation is on and the change is measurable (else `gray` itself).
+    def _gain_to_divide(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
+                        gray_integral: np.ndarray | None) -> float | None:
+        """The brightness change (log ratio) from the previous frame to `gray` to divide
+        out before KLT, or None: klt_gain_compensation is off, or the light is steady.
 
         KLT matches grey levels and has no gain in its model: a change of a few percent
         moves tracks by pixels (docs/method.md §6.1). The change is measured before KLT,
         as the median log ratio of 31x31 grey means around the tracks in the previous
         frame and around where KLT will start them in this one (exposure.log_gain):
-        squares that large hardly change under a few pixels of prediction error. Only KLT
-        sees the compensated frame; the frame kept for the next pair is `gray` as it
-        came, so the gains do not accumulate."""
+        squares that large hardly change under a few pixels of prediction error.
+
+        It is divided out only when it is a gain of the whole frame: while the light
+        counts as changing and the changes were common to the tracks (exposure.py: the
+        recent pairs, measured after KLT, above klt_flicker_log_gain, and well above the
+        spread of the tracks' own ratios), or when this pair alone is a jump well above
+        that spread. On KITTI each patch's brightness changes on its own by about 3 % as
+        the car drives, as much as its auto-exposure changes the frame's: dividing those
+        out made KITTI worse (0.14 -> 0.18 % of the path), at twice its frame interval
+        much worse, and the dino's shading too (docs/method.md §6.1). Only KLT sees the
+        divided frame; the frame kept for the next pair is `gray` as it came, so gains do
+        not accumulate."""
         if not self._gain_compensation:
-            return gray
+            return None
         if self._prev_integral is None:
             self._prev_integral = cv2.integral(self._prev_gray, sdepth=cv2.CV_32S)
-        self._integral = cv2.integral(gray, sdepth=cv2.CV_32S)
-        g = log_gain(self._prev_integral, self._integral, p0, start)
-        if g is None or abs(g) < _MIN_COMPENSATED_LOG_GAIN:
+        self._integral = gray_integral if gray_integral is not None \
+            else cv2.integral(gray, sdepth=cv2.CV_32S)
+        measured = log_gain(self._prev_integral, self._integral, p0, start)
+        if measured is None:
+            return None
+        g, spread = measured
+        exposure = self.exposure
+        if exposure.changing and exposure.common:
+            return g
+        if exposure.is_spike(g) and abs(g) >= COMMON_RATIO * spread:
+            return g
+        return None
+
+    @staticmethod
+    def _divided(gray: np.ndarray, log_gain_: float) -> np.ndarray:
+        """`gray` with the gain exp(log_gain_) divided out (itself for a negligible one)."""
+        if abs(log_gain_) < _MIN_COMPENSATED_LOG_GAIN:
             return gray
-        stats.klt_log_gain = g
-        lut = np.clip(np.rint(np.arange(256) * math.exp(-g)), 0, 255).astype(np.uint8)
-        return cv2.LUT(gray, lut)
+        lut = np.clip(np.rint(np.arange(256) * math.exp(-log_gain_)), 0, 255)
+        return cv2.LUT(gray, lut.astype(np.uint8))
 
     def _drop_camera_fixed(self, stats: TrackerStats) -> None:
         """Drop the tracks in image regions fixed to the camera (camera_fixed.py)."""

@@ -52,6 +52,10 @@ class FrameResult:
     #: the corners' loss of brightness of the lens fall-off divided out of the images, 0
     #: while none is (vignetting.py)
     lens_falloff_drop: float = 0.0
+    #: the KLT window side [px] the next frame is tracked with, and the log brightness
+    #: change divided out of this frame before KLT, 0 when none was (features.py)
+    klt_window_px: int = 0
+    klt_log_gain: float = 0.0
     message: str = ''                       #: why not ok / what happened
     #: wall-clock ms of the stages this frame ran: predict, track (KLT and detection),
     #: detect (the detection alone, a part of track), update, map, local_map, refind,

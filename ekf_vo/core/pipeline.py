@@ -191,6 +191,8 @@ class VisualOdometry(Initialisation, LossHandling):
         result.map_size = len(self.map)
         result.camera_fixed_share = self.tracker.stats.camera_fixed_share
         result.lens_falloff_drop = self.tracker.falloff.applied_drop
+        result.klt_window_px = self.tracker.stats.klt_window_px
+        result.klt_log_gain = self.tracker.stats.klt_log_gain
         result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
         return result
 

@@ -122,10 +122,12 @@ class LensFalloff:
             return gray
         return cv2.multiply(gray, self._gain, dtype=cv2.CV_8U)
 
-    def observe(self, gray: np.ndarray, p_prev: np.ndarray, p_cur: np.ndarray) -> bool:
+    def observe(self, gray: np.ndarray, p_prev: np.ndarray, p_cur: np.ndarray,
+                integral: np.ndarray | None = None) -> bool:
         """Learn from the tracks that went from p_prev (N, 2) in the previous frame to
-        p_cur in `gray` (the raw, uncorrected image). Returns True when the correction in
-        force changed (the caller corrects the previous frame again with `correct`)."""
+        p_cur in `gray` (the raw, uncorrected image; `integral` its cv2.integral, CV_32S,
+        when the caller has it). Returns True when the correction in force changed (the
+        caller corrects the previous frame again with `correct`)."""
         if not self.enabled:
             return False
         h, w = gray.shape
@@ -137,7 +139,8 @@ class LensFalloff:
             v2 = ((np.arange(h, dtype=np.float32) - (h - 1) / 2.0) ** 2)[:, None]
             self._r2 = ((u2 + v2) / half_diag2).astype(np.float32)
         # grey sums over squares from the integral image: 0.1 ms a frame at 1226x370
-        integral = cv2.integral(gray, sdepth=cv2.CV_32S)
+        if integral is None:
+            integral = cv2.integral(gray, sdepth=cv2.CV_32S)
         prev, self._prev = self._prev, integral
         if prev is None or prev.shape != integral.shape or len(p_cur) < MIN_PAIR_SAMPLES:
             return False

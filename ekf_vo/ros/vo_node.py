@@ -452,6 +452,8 @@ class VoNode(Node):
                 'rays': r.n_rays if r else 0,
                 'camera_fixed_share': round(r.camera_fixed_share, 3) if r else 0.0,
                 'lens_falloff_drop': round(r.lens_falloff_drop, 3) if r else 0.0,
+                'klt_window_px': r.klt_window_px if r else 0,
+                'klt_log_gain': round(r.klt_log_gain, 3) if r else 0.0,
                 'map_points': r.map_size if r else 0,
                 'resets': self.stream.n_resets}
         vals.update(self.stream.local_map_stats())
