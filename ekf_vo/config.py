@@ -103,8 +103,9 @@ class VoConfig(_Params):
         True, 'While the light changes (klt_flicker_log_gain: a flicker, an auto-exposure '
         'answering a jump of the light) or on a single jump, measure the brightness '
         'change from the previous frame before KLT (31x31 grey means around the tracks '
-        'and where KLT starts them) and divide it out of the frame KLT sees: KLT has no '
-        'gain in its model, and a 10 % change moves a tenth of the tracks by 7-33 px '
+        'and where KLT starts them) and divide it out of the frame KLT sees, as long as '
+        'it is a gain of the whole frame and not each patch changing on its own: KLT has '
+        'no gain in its model, and a 10 % change moves a tenth of the tracks by 7-33 px '
         '(docs/method.md §6.1). False: frames are tracked as they come.',
         group='front end')
     klt_pyramid_levels: int = param(

@@ -17,6 +17,12 @@ then saw a 6 % gain as 1 %. Its root mean square over the last
 `WINDOW_PAIRS` pairs is compared with `klt_flicker_log_gain`; a single pair at twice
 that is enough. On KITTI 06 (a car's auto-exposure) the root mean square peaks at 0.035
 (one pair at 0.061); under a +-10 % flicker it is about 0.08.
+
+The same measure decides whether the tracker divides the change out of the frame before
+KLT (klt_gain_compensation, features.py): only while the light is changing and the
+changes are common to the tracks (`common`: the log ratio at least COMMON_RATIO times the
+spread of the tracks' own), that is a gain of the whole frame and not each patch changing
+on its own, as a driving scene's do.
 """
 from __future__ import annotations
 

@@ -14,7 +14,9 @@ fixed interval).
 An optional prior on the flow (`predicted`: where the EKF expects each track to land) is
 used as the KLT initial guess; when at least half the predicted tracks fail with it (the
 prediction is wrong), they are retried without it, so a bad prediction does not cost the
-tracks plain KLT would have kept.
+tracks plain KLT would have kept. While the frames change brightness by a gain common to
+the tracks (a flicker, an auto-exposure), the gain is measured before KLT and divided
+out of the frame it tracks (exposure.py, docs/method.md §6.1).
 
 Conventions: pixel coordinates are RAW image pixels (distorted, origin at the centre of
 the top-left pixel, x right, y down). Track ids are int64, unique over the tracker's
@@ -133,7 +135,8 @@ class TrackerStats:
     #: the log brightness ratio divided out of this frame before KLT (0: none;
     #: klt_gain_compensation)
     klt_log_gain: float = 0.0
-    #: 1 when KLT ran a second time because the gain measured after it disagreed
+    #: 1 when KLT ran a second time because the gain measured around the tracks it
+    #: found disagreed with the one divided out, or was not a gain of the whole frame
     n_gain_rechecked: int = 0
     rejected_frame: str = ''
 
@@ -412,7 +415,10 @@ class FeatureTracker:
         1226x370; the Python binding takes no prebuilt pyramid), so the calls are few
         and batched (docs/method.md §17.2):
 
-        1. forward, every track, starting where the filter predicts it (`predicted`);
+        1. forward, every track, starting where the filter predicts it (`predicted`), on
+           the frame with the brightness change divided out while the light changes by
+           a gain of the whole frame (`_gain_to_divide`; run again when the gain
+           measured around the tracks found disagrees);
         2. backward, every track (the forward-backward check);
         3. only if at least half the predicted tracks failed 2 — the prediction itself is
            wrong (a jolt, a filter off course) — forward again from the old positions,
@@ -432,13 +438,21 @@ class FeatureTracker:
         raw_gray, gray = gray, (gray if g is None else self._divided(gray, g))
         p1, ok = self._lk(self._prev_gray, gray, p0, init)
         if g is not None:
-            # The gain again, around where KLT found the tracks: before KLT, a fast turn
-            # puts the squares off by more than their size can absorb (2-4 % off on the
-            # rendered hand-held camera, which then drifted; docs/method.md §6.1).
+            # Judged again around where KLT found the tracks: before KLT, a fast turn
+            # puts the squares off by more than their size can absorb (the gain 2-4 %
+            # off in some pairs of the rendered hand-held camera, and the tracks' spread
+            # too wide to tell a gain of the whole frame; docs/method.md §6.1).
             found = log_gain(self._prev_integral, self._integral, p0[ok], p1[ok])
-            if found is not None and abs(found[0] - g) > _GAIN_RECHECK_LOG:
+            again = True
+            if found is None or not (self.exposure.common or
+                                     abs(found[0]) >= COMMON_RATIO * found[1]):
+                g, gray = 0.0, raw_gray        # not a gain of the whole frame
+            elif abs(found[0] - g) > _GAIN_RECHECK_LOG:
                 g = found[0]
                 gray = self._divided(raw_gray, g)
+            else:
+                again = False
+            if again:
                 p1, ok = self._lk(self._prev_gray, gray, p0, init)
                 stats.n_gain_rechecked = 1
             stats.klt_log_gain = g if abs(g) >= _MIN_COMPENSATED_LOG_GAIN else 0.0
@@ -480,11 +494,13 @@ class FeatureTracker:
         frame and around where KLT will start them in this one (exposure.log_gain):
         squares that large hardly change under a few pixels of prediction error.
 
-        It is divided out only when it is a gain of the whole frame: while the light
-        counts as changing and the changes were common to the tracks (exposure.py: the
-        recent pairs, measured after KLT, above klt_flicker_log_gain, and well above the
-        spread of the tracks' own ratios), or when this pair alone is a jump well above
-        that spread. On KITTI each patch's brightness changes on its own by about 3 % as
+        It is tried only while the light counts as changing (exposure.py: the recent
+        pairs, measured after KLT, above klt_flicker_log_gain) or when this pair alone
+        is a jump, and kept only when it is a gain of the whole frame: measured again
+        around where KLT found the tracks (`_klt`), the recent changes or this one are
+        at least COMMON_RATIO times the spread of the tracks' own ratios. Judged on
+        this pair too, a jump of the light after a steady spell is divided out at once,
+        not once half the window has seen it. On KITTI each patch's brightness changes on its own by about 3 % as
         the car drives, as much as its auto-exposure changes the frame's: dividing those
         out made KITTI worse (0.14 -> 0.18 % of the path), at twice its frame interval
         much worse, and the dino's shading too (docs/method.md §6.1). Only KLT sees the
@@ -499,13 +515,11 @@ class FeatureTracker:
         measured = log_gain(self._prev_integral, self._integral, p0, start)
         if measured is None:
             return None
-        g, spread = measured
-        exposure = self.exposure
-        if exposure.changing and exposure.common:
-            return g
-        if exposure.is_spike(g) and abs(g) >= COMMON_RATIO * spread:
-            return g
-        return None
+        g = measured[0]
+        if abs(g) < _MIN_COMPENSATED_LOG_GAIN or not (
+                self.exposure.changing or self.exposure.is_spike(g)):
+            return None
+        return g
 
     @staticmethod
     def _divided(gray: np.ndarray, log_gain_: float) -> np.ndarray:
