@@ -1,9 +1,9 @@
 """What a camera, its driver or its mounting does to a stream, applied to a rendered
 sequence (bench.rotation_nees suffixes ``_repeat``, ``_jitter``, ``_flicker``,
-``_exposure``, ``_overlay``, ``_body``, ``_hotpixels``, ``_dark``, ``_vignette``; docs/ros.md §5, §7, §8,
-docs/method.md §3.5, §6.1, §6.10). Each takes and returns [(stamp ns, image,
-T_world_cam)], in stamp order; the ground truth of a frame stays that of the image it
-carries.
+``_exposure``, ``_overlay``, ``_body``, ``_hotpixels``, ``_dark``, ``_vignette``;
+docs/ros.md §5, §7, §8, docs/method.md §3.5, §6.1, §6.10). Each takes and returns
+[(stamp ns, image, T_world_cam)], in stamp order; the ground truth of a frame stays that
+of the image it carries.
 
 - ``repeat``: each frame, with probability REPEAT_SHARE, sent again half a frame later
   (a driver whose camera runs slower than it publishes, or a relay);
@@ -63,6 +63,8 @@ def flicker(seq: list, rng: np.random.Generator) -> list:
 
 
 def exposure(seq: list, rng: np.random.Generator) -> list:
+    """The light jumps now and then; the auto-exposure brings the image back (EXPOSURE_*;
+    the image is scaled by light x exposure and clipped, as a sensor saturates)."""
     log_light, log_exposure, rate = 0.0, 0.0, 0.0
 
     def exposed(t, im):

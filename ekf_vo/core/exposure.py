@@ -19,10 +19,11 @@ that is enough. On KITTI 06 (a car's auto-exposure) the root mean square peaks a
 (one pair at 0.061); under a +-10 % flicker it is about 0.08.
 
 The same measure decides whether the tracker divides the change out of the frame before
-KLT (klt_gain_compensation, features.py): only while the light is changing and the
-changes are common to the tracks (`common`: the log ratio at least COMMON_RATIO times the
-spread of the tracks' own), that is a gain of the whole frame and not each patch changing
-on its own, as a driving scene's do.
+KLT (klt_gain_compensation, features.py): it tries only while the light is changing (or
+on a single jump), and keeps the division only when the change is common to the tracks
+(at least COMMON_RATIO times the spread of the tracks' own log ratios, on that pair or
+as the median of the window: `common`), that is a gain of the whole frame and not each
+patch changing on its own, as a driving scene's do.
 """
 from __future__ import annotations
 

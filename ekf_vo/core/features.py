@@ -485,8 +485,9 @@ class FeatureTracker:
 
     def _gain_to_divide(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
                         gray_integral: np.ndarray | None) -> float | None:
-        """The brightness change (log ratio) from the previous frame to `gray` to divide
-        out before KLT, or None: klt_gain_compensation is off, or the light is steady.
+        """The brightness change (log ratio) from the previous frame to `gray` to try
+        dividing out before KLT, or None: klt_gain_compensation is off, or the light is
+        steady.
 
         KLT matches grey levels and has no gain in its model: a change of a few percent
         moves tracks by pixels (docs/method.md §6.1). The change is measured before KLT,
@@ -500,12 +501,12 @@ class FeatureTracker:
         around where KLT found the tracks (`_klt`), the recent changes or this one are
         at least COMMON_RATIO times the spread of the tracks' own ratios. Judged on
         this pair too, a jump of the light after a steady spell is divided out at once,
-        not once half the window has seen it. On KITTI each patch's brightness changes on its own by about 3 % as
-        the car drives, as much as its auto-exposure changes the frame's: dividing those
-        out made KITTI worse (0.14 -> 0.18 % of the path), at twice its frame interval
-        much worse, and the dino's shading too (docs/method.md §6.1). Only KLT sees the
-        divided frame; the frame kept for the next pair is `gray` as it came, so gains do
-        not accumulate."""
+        not once half the window has seen it. On KITTI each patch's brightness changes
+        on its own by about 3 % as the car drives, as much as its auto-exposure changes
+        the frame's: dividing those out made KITTI worse (0.14 -> 0.18 % of the path),
+        at twice its frame interval much worse, and the dino's shading too
+        (docs/method.md §6.1). Only KLT sees the divided frame; the frame kept for the
+        next pair is `gray` as it came, so gains do not accumulate."""
         if not self._gain_compensation:
             return None
         if self._prev_integral is None:
