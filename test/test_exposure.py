@@ -183,7 +183,7 @@ def test_a_change_each_patch_makes_on_its_own_is_not_divided_out(world) -> None:
     they come; a single pair whose change happens to stand out from the spread may be
     divided out (measured: one, the first judged)."""
     rng = np.random.default_rng(11)
-    tracker = FeatureTracker(VoConfig())
+    tracker = FeatureTracker(VoConfig(klt_gain_compensation=True))
     divided = []
     for k in range(12):
         field = cv2.resize(rng.uniform(0.85, 1.15, (3, 4)).astype(np.float32), (W, H),
