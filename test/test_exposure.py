@@ -151,6 +151,20 @@ def test_a_steady_light_is_not_touched(world) -> None:
     assert divided == [0.0] * 6
 
 
+def test_a_single_jump_after_a_steady_spell_is_divided_out_at_once(world) -> None:
+    # under steady light the gain is measured before KLT only when the frame's mean
+    # grey level jumped (features._frame_brightness_jumped): a jump of 15 % (twice the
+    # one-pair threshold) after ten steady frames is divided out on its own frame, and
+    # the frames after it, at the new level, are tracked as they come once the light
+    # counts as changing (their change is 0)
+    gains = [1.0] * 10 + [1.15] * 4
+    errors, divided = _pan_errors(world, gains, compensate=True)
+    assert divided[:10] == [0.0] * 10
+    assert divided[10] == pytest.approx(math.log(1.15), abs=0.01)
+    assert all(abs(g) < 0.01 for g in divided[11:])
+    assert np.percentile(errors, 90) < 0.5
+
+
 def test_a_moderate_flicker_is_divided_out_once_the_light_counts_as_changing(world
                                                                             ) -> None:
     # pairs of +-5.8 %: under the one-pair jump (twice klt_flicker_log_gain), above it
