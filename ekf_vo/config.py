@@ -81,7 +81,17 @@ class VoConfig(_Params):
         '(the stamp taken as the middle row\'s). Tracked pixels are moved to the stamp\'s '
         'time by the predicted motion: the rotation, and the translation at the map\'s '
         'depths (docs/method.md §15.14). Set it from the sensor\'s datasheet: a wrong '
-        'value is as bad as none. 0: a global shutter.',
+        'value is as bad as none. 0: a global shutter. With rolling_shutter_estimate, '
+        'the value used until the estimate is significant.',
+        's', 0.0, 1.0, group='front end')
+    rolling_shutter_estimate: bool = param(
+        True, 'Estimate the rolling shutter\'s readout while tracking, from the map '
+        'points\' residuals after each update (the part no pose change explains that '
+        'grows with the row\'s time and the image motion; docs/method.md §15.17), and '
+        'correct the pixels with it once it is significant. A global-shutter camera '
+        'keeps rolling_shutter_s. False: rolling_shutter_s only.', group='front end')
+    rolling_shutter_max_s: float = param(
+        0.05, 'The largest readout the estimate may apply (a webcam\'s is 10-33 ms).',
         's', 0.0, 1.0, group='front end')
     klt_window_px: int = param(
         21, 'KLT window side while the light is steady. A smaller one is more precise and '

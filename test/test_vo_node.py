@@ -93,6 +93,9 @@ def test_raw_every_encoding_frames_and_late_map(tmp_path, demo):
         assert feed.status, 'no ~/status'
         values = {kv.key: kv.value for kv in feed.status[-1].status[0].values}
         assert values['state'] == 'tracking' and int(values['map_points']) > 50
+        # the demo's global shutter: the readout estimated, not applied (method §15.17)
+        assert float(values['readout_ms']) == 0.0
+        assert abs(float(values['readout_estimate_ms'])) < 2.0
 
         # a subscriber that joins late still gets the map (transient local)
         clouds: list[PointCloud2] = h.record(PointCloud2, '/map_points', LATCHED)

@@ -56,6 +56,10 @@ class FrameResult:
     #: change divided out of this frame before KLT, 0 when none was (features.py)
     klt_window_px: int = 0
     klt_log_gain: float = 0.0
+    #: the rolling shutter's readout [s] the next frame's pixels are corrected with, and
+    #: its estimate from the tracked frames so far, nan before any (readout.py)
+    readout_s: float = 0.0
+    readout_estimate_s: float = float('nan')
     message: str = ''                       #: why not ok / what happened
     #: wall-clock ms of the stages this frame ran: predict, track (KLT and detection),
     #: detect (the detection alone, a part of track), update, map, local_map, refind,

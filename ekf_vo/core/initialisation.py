@@ -61,7 +61,7 @@ class Initialisation:
         timings = {'track': (time.perf_counter() - t) * 1e3,
                    'detect': self.tracker.stats.detect_ms}     # a part of 'track'
         px = self.camera.undistort(tracks.px)
-        if self.cfg.rolling_shutter_s > 0.0:
+        if self.readout.applied_s > 0.0:
             px = self._initialising_to_stamp_time(tracks, px, stamp_ns)
         res = FrameResult(stamp_ns, TrackingState.INITIALISING, n_tracks=len(tracks),
                           timings_ms=timings, track_ids=tracks.ids, track_px=tracks.px)
@@ -74,9 +74,9 @@ class Initialisation:
         the step from the last frame: fitted to this frame's pixels corrected at the
         last step's rate (a hand-held camera's rate changes within a few frames), or
         that rate when the step has no rotation fit."""
-        c, rows_px = self.cfg, tracks.px[:, 1]
+        readout_s, rows_px = self.readout.applied_s, tracks.px[:, 1]
         moved = rotation_to_stamp_time(px, rows_px, self._initialising_rate,
-                                       c.rolling_shutter_s, self.camera)
+                                       readout_s, self.camera)
         prev = self._last_initialising
         if prev is None or self.orientation is None:
             return moved
@@ -98,7 +98,7 @@ class Initialisation:
             self._initialising_rate = \
                 geo.quat_to_rotvec(geo.matrix_to_quat(fit.R_cur_ref.T)) / dt
             moved = rotation_to_stamp_time(px, rows_px, self._initialising_rate,
-                                           c.rolling_shutter_s, self.camera)
+                                           readout_s, self.camera)
         return moved
 
     def _initialise(self, gray: np.ndarray, stamp_ns: int,
@@ -106,7 +106,7 @@ class Initialisation:
         tracks, px, res = self._track_initialising(gray, stamp_ns)
         timings = res.timings_ms
         prev, self._last_initialising = self._last_initialising, (stamp_ns, tracks.ids, px)
-        if self.cfg.rolling_shutter_s > 0.0 and prev is None and known_T is None:
+        if self.readout.applied_s > 0.0 and prev is None and known_T is None:
             # a rolling shutter's first frame keeps its skew (no turn rate yet): a
             # reference made of it would show the skew as parallax in every later pair
             res.message = 'bootstrap: rolling shutter, the first frame only gives the turn rate'

@@ -46,6 +46,7 @@ from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
 from .orientation_only import OrientationChain
 from .refind import MapPointFinder
+from .readout import MIN_POINTS as READOUT_MIN_POINTS, ReadoutEstimate, correction_rate
 from .relocalise import Relocaliser
 
 #: A frame whose tracks landed a median of more than this [px] from their prediction
@@ -88,6 +89,9 @@ class VisualOdometry(Initialisation, LossHandling):
         self.relocaliser = Relocaliser(cfg, camera) if cfg.local_map and cfg.relocalise \
             else None
         self.growth = MapGrowth(cfg, camera)        # triangulation candidates (§7.3)
+        # a rolling shutter's readout, estimated (§15.17); kept over map resets
+        self.readout = ReadoutEstimate(cfg.rolling_shutter_s, cfg.rolling_shutter_max_s,
+                                       cfg.rolling_shutter_estimate)
         self.health = HealthMonitor(cfg)            # online consistency checks (§15)
         # keyframes' rotation check and drift (§15.2, §15.11)
         self._rotation_job = KeyframeRotationJudge(
@@ -193,6 +197,9 @@ class VisualOdometry(Initialisation, LossHandling):
         result.lens_falloff_drop = self.tracker.falloff.applied_drop
         result.klt_window_px = self.tracker.stats.klt_window_px
         result.klt_log_gain = self.tracker.stats.klt_log_gain
+        result.readout_s = self.readout.applied_s
+        estimate = self.readout.estimate_s
+        result.readout_estimate_s = float('nan') if estimate is None else estimate
         result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
         return result
 
@@ -225,8 +232,9 @@ class VisualOdometry(Initialisation, LossHandling):
 
         t = time.perf_counter()
         has_point, X = self.map.lookup(tracks.ids)
-        if c.rolling_shutter_s > 0.0:
-            px = self._to_stamp_time(tracks, px, has_point, X)
+        readout_s, px_as_seen = self.readout.applied_s, px
+        if readout_s > 0.0:
+            px = self._to_stamp_time(tracks, px, has_point, X, readout_s)
         rows = np.flatnonzero(has_point)
         if len(rows) > c.max_update_points:
             keep = np.sort(self.rng.choice(len(rows), c.max_update_points, replace=False))
@@ -235,6 +243,13 @@ class VisualOdometry(Initialisation, LossHandling):
                           n_matches=len(rows), timings_ms=timings)
         sigma = map_measurement_sigmas(self.cfg, self._noise, self.map, tracks.ids[rows],
                                        X, self.ekf.T_world_cam, self.camera.K)
+        if self.readout.in_force:
+            # the estimated readout's own uncertainty, in each pixel's noise (§15.17)
+            extra = self.readout.extra_pixel_variance(correction_rate(
+                px_as_seen[rows], tracks.px[rows, 1], X, self.ekf.T_world_cam,
+                self.ekf.x[ANG], self.ekf.x[VEL], self.camera))
+            nominal = np.full(len(rows), c.pixel_sigma_px) if sigma is None else sigma
+            sigma = np.sqrt(nominal ** 2 + extra)
         rays = self._rays_without_depth(tracks, px, has_point, X)
         try:
             inlier_rows = self._update(tracks, px, rows, X, sigma, rays)
@@ -246,6 +261,7 @@ class VisualOdometry(Initialisation, LossHandling):
         timings['update'] = (time.perf_counter() - t) * 1e3
         res.n_inliers = len(inlier_rows)
         res.n_rays = int(np.count_nonzero(self._ray_inliers))
+        self._observe_readout(tracks, px_as_seen, px, rows, X, readout_s)
 
         # ---- tracking quality, and the published covariance (docs/method.md §14-15)
         n_found = np.count_nonzero(self._map_inliers) / max(len(rows), 1) * \
@@ -286,21 +302,39 @@ class VisualOdometry(Initialisation, LossHandling):
         return res
 
     def _to_stamp_time(self, tracks: Tracks, px: np.ndarray, has_point: np.ndarray,
-                       X: np.ndarray) -> np.ndarray:
+                       X: np.ndarray, readout_s: float) -> np.ndarray:
         """A rolling shutter's tracked pixels, each row brought to the stamp's time by
         the prior's motion (rolling_shutter.py, docs/method.md §15.14): the rotation for
         every track, the translation at the map point's depth, or, for a track without
         one, at the median depth of the map in view."""
-        c, cam, T = self.cfg, self.camera, self.ekf.T_world_cam
+        cam, T = self.camera, self.ekf.T_world_cam
         rows_px = tracks.px[:, 1]
-        px = rotation_to_stamp_time(px, rows_px, self.ekf.x[ANG], c.rolling_shutter_s, cam)
+        px = rotation_to_stamp_time(px, rows_px, self.ekf.x[ANG], readout_s, cam)
         depth = geo.median_depth(X, T)
         if depth is None:
             return px
         X_all = points_on_rays(px, cam, T, depth)
         X_all[has_point] = X
         return translation_to_stamp_time(px, rows_px, X_all, T, self.ekf.x[VEL],
-                                         c.rolling_shutter_s, cam)
+                                         readout_s, cam)
+
+    def _observe_readout(self, tracks: Tracks, px_as_seen: np.ndarray, px: np.ndarray,
+                         rows: np.ndarray, X: np.ndarray, used_s: float) -> None:
+        """Hand the map points the update kept to the readout estimate (readout.py,
+        docs/method.md §15.17): their residuals after the update, and how a readout
+        correction moves each, with the updated motion."""
+        if not self.readout.enabled:
+            return
+        mi = self._map_inliers
+        if np.count_nonzero(mi) < READOUT_MIN_POINTS:
+            return
+        cam, T = self.camera, self.ekf.T_world_cam
+        kept, X_kept = rows[mi], X[mi]
+        rate = correction_rate(px_as_seen[kept], tracks.px[kept, 1], X_kept, T,
+                               self.ekf.x[ANG], self.ekf.x[VEL], cam)
+        X_cam = (X_kept - T[:3, 3]) @ T[:3, :3]
+        self.readout.observe(px[kept], X_cam[:, 2], px[kept] - cam.project(X_cam), rate,
+                             cam, used_s)
 
     def _judge(self, res: FrameResult, n_found: float, n_in_view: int) -> bool:
         """Failed frames and loss (docs/method.md §7.4), then the online consistency

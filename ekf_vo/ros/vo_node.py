@@ -17,6 +17,7 @@ runs the estimator and publishes, so a slow frame never blocks the executor.
 from __future__ import annotations
 
 import collections
+import math
 import sys
 import threading
 import time
@@ -454,6 +455,9 @@ class VoNode(Node):
                 'lens_falloff_drop': round(r.lens_falloff_drop, 3) if r else 0.0,
                 'klt_window_px': r.klt_window_px if r else 0,
                 'klt_log_gain': round(r.klt_log_gain, 3) if r else 0.0,
+                'readout_ms': round(r.readout_s * 1e3, 2) if r else 0.0,
+                'readout_estimate_ms': round(r.readout_estimate_s * 1e3, 2)
+                if r and math.isfinite(r.readout_estimate_s) else '',
                 'map_points': r.map_size if r else 0,
                 'resets': self.stream.n_resets}
         vals.update(self.stream.local_map_stats())
