@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from ekf_vo.core import geometry as geo
-from ekf_vo.core.readout import MIN_APPLIED_S, ReadoutEstimate, correction_rate
+from ekf_vo.core.readout import (MIN_APPLIED_S, ReadoutEstimate, correction_rate,
+                                 interaction_matrix)
 from ekf_vo.core.rolling_shutter import rotation_to_stamp_time, translation_to_stamp_time
 
 from .test_rolling_shutter import CAMERA, _project, _rolling_shutter_pixels
@@ -25,15 +26,35 @@ def _frame(rng, readout_s, omega_deg_s=60.0, noise_px=0.3):
     return T0, omega, v, X, seen
 
 
+def _twist(T, omega, v):
+    """(v_cam, omega_cam) of a camera at T moving at v (world) turning at omega (camera)."""
+    return np.concatenate((T[:3, :3].T @ v, omega))
+
+
 def _observe(est, T_est, omega, v, X, seen, used_s):
-    """What the pipeline hands the estimate: the pixels corrected with `used_s`, their
-    residuals from the estimated pose, and the correction's rate."""
+    """What the pipeline hands the estimate: the pixels corrected with `used_s` and their
+    residuals from the estimated pose."""
     rows = seen[:, 1]
     px = translation_to_stamp_time(rotation_to_stamp_time(seen, rows, omega, used_s, CAMERA),
                                    rows, X, T_est, v, used_s, CAMERA)
     X_c = (X - T_est[:3, 3]) @ T_est[:3, :3]
-    rate = correction_rate(seen, rows, X, T_est, omega, v, CAMERA)
-    return est.observe(px, X_c[:, 2], px - _project(T_est, X), rate, CAMERA, used_s)
+    return est.observe(px, rows, X_c[:, 2], px - _project(T_est, X), _twist(T_est, omega, v),
+                       CAMERA, used_s)
+
+
+def test_the_rate_is_what_the_correction_does_per_second_of_readout():
+    """correction_rate (the interaction matrix) against rolling_shutter.py's correction
+    at a small readout: the same sign and size, to first order."""
+    rng = np.random.default_rng(1)
+    T0, omega, v, X, seen = _frame(rng, 0.0, omega_deg_s=90.0, noise_px=0.0)
+    rows, step = seen[:, 1], 1e-3
+    moved = translation_to_stamp_time(rotation_to_stamp_time(seen, rows, omega, step, CAMERA),
+                                      rows, X, T0, v, step, CAMERA)
+    X_c = (X - T0[:3, 3]) @ T0[:3, :3]
+    L = interaction_matrix(seen, X_c[:, 2], CAMERA)
+    d = correction_rate(L, rows, _twist(T0, omega, v), CAMERA)
+    np.testing.assert_allclose(d, (seen - moved) / step, rtol=0.02, atol=0.5)
+    assert np.max(np.abs(d)) > 100.0                       # px/s: the test says something
 
 
 @pytest.mark.parametrize('used_s', [0.0, 0.01, 0.03])

@@ -46,7 +46,8 @@ from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
 from .orientation_only import OrientationChain
 from .refind import MapPointFinder
-from .readout import MIN_POINTS as READOUT_MIN_POINTS, ReadoutEstimate, correction_rate
+from .readout import (MIN_POINTS as READOUT_MIN_POINTS, ReadoutEstimate, correction_rate,
+                      interaction_matrix)
 from .relocalise import Relocaliser
 
 #: A frame whose tracks landed a median of more than this [px] from their prediction
@@ -232,7 +233,7 @@ class VisualOdometry(Initialisation, LossHandling):
 
         t = time.perf_counter()
         has_point, X = self.map.lookup(tracks.ids)
-        readout_s, px_as_seen = self.readout.applied_s, px
+        readout_s = self.readout.applied_s
         if readout_s > 0.0:
             px = self._to_stamp_time(tracks, px, has_point, X, readout_s)
         rows = np.flatnonzero(has_point)
@@ -243,11 +244,13 @@ class VisualOdometry(Initialisation, LossHandling):
                           n_matches=len(rows), timings_ms=timings)
         sigma = map_measurement_sigmas(self.cfg, self._noise, self.map, tracks.ids[rows],
                                        X, self.ekf.T_world_cam, self.camera.K)
-        if self.readout.in_force:
+        if self.readout.in_force and len(rows):
             # the estimated readout's own uncertainty, in each pixel's noise (§15.17)
-            extra = self.readout.extra_pixel_variance(correction_rate(
-                px_as_seen[rows], tracks.px[rows, 1], X, self.ekf.T_world_cam,
-                self.ekf.x[ANG], self.ekf.x[VEL], self.camera))
+            T = self.ekf.T_world_cam
+            depth = np.maximum((X - T[:3, 3]) @ T[:3, 2], 1e-6)
+            L = interaction_matrix(px[rows], depth, self.camera)
+            extra = self.readout.extra_pixel_variance(
+                correction_rate(L, tracks.px[rows, 1], self._twist_cam(), self.camera))
             nominal = np.full(len(rows), c.pixel_sigma_px) if sigma is None else sigma
             sigma = np.sqrt(nominal ** 2 + extra)
         rays = self._rays_without_depth(tracks, px, has_point, X)
@@ -261,7 +264,7 @@ class VisualOdometry(Initialisation, LossHandling):
         timings['update'] = (time.perf_counter() - t) * 1e3
         res.n_inliers = len(inlier_rows)
         res.n_rays = int(np.count_nonzero(self._ray_inliers))
-        self._observe_readout(tracks, px_as_seen, px, rows, X, readout_s)
+        self._observe_readout(tracks, px, rows, X, readout_s)
 
         # ---- tracking quality, and the published covariance (docs/method.md §14-15)
         n_found = np.count_nonzero(self._map_inliers) / max(len(rows), 1) * \
@@ -318,8 +321,8 @@ class VisualOdometry(Initialisation, LossHandling):
         return translation_to_stamp_time(px, rows_px, X_all, T, self.ekf.x[VEL],
                                          readout_s, cam)
 
-    def _observe_readout(self, tracks: Tracks, px_as_seen: np.ndarray, px: np.ndarray,
-                         rows: np.ndarray, X: np.ndarray, used_s: float) -> None:
+    def _observe_readout(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
+                         X: np.ndarray, used_s: float) -> None:
         """Hand the map points the update kept to the readout estimate (readout.py,
         docs/method.md §15.17): their residuals after the update, and how a readout
         correction moves each, with the updated motion."""
@@ -329,12 +332,15 @@ class VisualOdometry(Initialisation, LossHandling):
         if np.count_nonzero(mi) < READOUT_MIN_POINTS:
             return
         cam, T = self.camera, self.ekf.T_world_cam
-        kept, X_kept = rows[mi], X[mi]
-        rate = correction_rate(px_as_seen[kept], tracks.px[kept, 1], X_kept, T,
-                               self.ekf.x[ANG], self.ekf.x[VEL], cam)
-        X_cam = (X_kept - T[:3, 3]) @ T[:3, :3]
-        self.readout.observe(px[kept], X_cam[:, 2], px[kept] - cam.project(X_cam), rate,
-                             cam, used_s)
+        kept = rows[mi]
+        X_cam = (X[mi] - T[:3, 3]) @ T[:3, :3]
+        self.readout.observe(px[kept], tracks.px[kept, 1], X_cam[:, 2],
+                             px[kept] - cam.project(X_cam), self._twist_cam(), cam, used_s)
+
+    def _twist_cam(self) -> np.ndarray:
+        """The filter's velocity and rotation rate, both in the camera frame (6,)."""
+        return np.concatenate((self.ekf.T_world_cam[:3, :3].T @ self.ekf.x[VEL],
+                               self.ekf.x[ANG]))
 
     def _judge(self, res: FrameResult, n_found: float, n_in_view: int) -> bool:
         """Failed frames and loss (docs/method.md §7.4), then the online consistency

@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from .camera import PinholeCamera
-from .rolling_shutter import rotation_to_stamp_time, translation_to_stamp_time
+from .rolling_shutter import row_time_offsets_s
 
 #: frames over which the per-frame estimates are averaged (a weight decaying as
 #: exp(-age / MEMORY_FRAMES)); bounds how certain errors shared by frames can make it
@@ -50,23 +50,35 @@ MAX_FRAME_SIGMA_S = 0.05
 #: skewed alike), so the estimate falls short, by up to 16 % on the rendered ground robot
 #: (25 ms of 30), however many frames agree
 MIN_RELATIVE_SIGMA = 0.3
-#: the readout [s] at which the correction is evaluated for its rate (it is linear in
-#: the readout to far below a pixel at this size)
-_STEP_S = 1e-3
 
 
-def correction_rate(px_seen: np.ndarray, rows_px: np.ndarray, X_world: np.ndarray,
-                    T_world_cam: np.ndarray, omega_cam: np.ndarray, v_world: np.ndarray,
+def interaction_matrix(px_ideal: np.ndarray, depth: np.ndarray, camera: PinholeCamera
+                       ) -> np.ndarray:
+    """L (n,2,6): how the ideal pixels (n,2) of static points at optical depths (n,) move
+    [px/s] per camera twist (v_cam [map units/s], omega_cam [rad/s], both in the camera
+    frame): the pinhole's interaction matrix, X_cam' = -v_cam - omega_cam x X_cam."""
+    x = (px_ideal[:, 0] - camera.cx) / camera.fx
+    y = (px_ideal[:, 1] - camera.cy) / camera.fy
+    inv_z = 1.0 / depth
+    L = np.zeros((len(x), 2, 6))
+    L[:, 0, 0], L[:, 0, 2] = -inv_z, x * inv_z
+    L[:, 0, 3], L[:, 0, 4], L[:, 0, 5] = x * y, -(1 + x * x), y
+    L[:, 1, 1], L[:, 1, 2] = -inv_z, y * inv_z
+    L[:, 1, 3], L[:, 1, 4], L[:, 1, 5] = 1 + y * y, -x * y, -x
+    L[:, 0] *= camera.fx
+    L[:, 1] *= camera.fy
+    return L
+
+
+def correction_rate(L: np.ndarray, rows_px: np.ndarray, twist: np.ndarray,
                     camera: PinholeCamera) -> np.ndarray:
-    """d (n,2) [px/s]: minus how bringing the ideal pixels `px_seen` (n,2), seen on
-    the raw rows `rows_px`, of the points X_world (n,3) to the stamp's time moves them
-    per second of readout, the camera at T_world_cam turning at omega_cam (camera frame)
-    and moving at v_world (rolling_shutter.py). Pixels corrected with a readout tau_used
-    are off their projection by (tau - tau_used) d when the camera's is tau."""
-    moved = rotation_to_stamp_time(px_seen, rows_px, omega_cam, _STEP_S, camera)
-    moved = translation_to_stamp_time(moved, rows_px, X_world, T_world_cam, v_world,
-                                      _STEP_S, camera)
-    return (np.asarray(px_seen, float) - moved) / _STEP_S
+    """d (n,2) [px/s]: the image motion (`interaction_matrix` L times the camera's twist
+    (6,)) times each raw row's time offset per second of readout. A pixel seen on its
+    row at t + offset * tau is off the stamp's by offset * tau * motion, so pixels
+    corrected with a readout tau_used are off their projection by (tau - tau_used) d
+    when the camera's is tau (rolling_shutter.py corrects them to first order alike)."""
+    offset = row_time_offsets_s(rows_px, camera.height, 1.0)
+    return offset[:, None] * (L @ np.asarray(twist, float))
 
 
 class ReadoutEstimate:
@@ -140,35 +152,31 @@ class ReadoutEstimate:
             return None
         return sigma ** 2 * np.sum(np.square(d_px_per_s), axis=1)
 
-    def observe(self, px_ideal: np.ndarray, depth: np.ndarray, residual_px: np.ndarray,
-                d_px_per_s: np.ndarray, camera: PinholeCamera, used_s: float
-                ) -> float | None:
-        """One tracked frame: the map points' ideal pixels (n,2) and optical depths (n,),
-        their post-update residuals z - h (n,2) [px], `correction_rate` d (n,2) [px/s],
-        and the readout the pixels were corrected with. Returns this frame's estimate [s]
-        when it was used."""
-        fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    def observe(self, px_ideal: np.ndarray, rows_px: np.ndarray, depth: np.ndarray,
+                residual_px: np.ndarray, twist: np.ndarray, camera: PinholeCamera,
+                used_s: float) -> float | None:
+        """One tracked frame: the map points' ideal pixels (n,2), raw rows (n,) and
+        optical depths (n,), their post-update residuals z - h (n,2) [px], the camera's
+        twist (v_cam, omega_cam) after the update, and the readout the pixels were
+        corrected with. Returns this frame's estimate [s] when it was used."""
         if not self.enabled:
             return None
-        ok = np.isfinite(residual_px).all(axis=1) & np.isfinite(d_px_per_s).all(axis=1) \
-            & (depth > 0.0)
+        ok = np.isfinite(residual_px).all(axis=1) & (depth > 0.0)
         n = int(np.count_nonzero(ok))
         if n < MIN_POINTS:
             return None
-        x = (px_ideal[ok, 0] - cx) / fx
-        y = (px_ideal[ok, 1] - cy) / fy
-        inv_z = 1.0 / depth[ok]
-        # the pinhole's interaction matrix (image motion per camera twist), in pixels
-        A = np.zeros((2 * n, 6))
-        A[0::2, 0], A[0::2, 2] = -inv_z * fx, x * inv_z * fx
-        A[0::2, 3], A[0::2, 4], A[0::2, 5] = x * y * fx, -(1 + x * x) * fx, y * fx
-        A[1::2, 1], A[1::2, 2] = -inv_z * fy, y * inv_z * fy
-        A[1::2, 3], A[1::2, 4], A[1::2, 5] = (1 + y * y) * fy, -x * y * fy, -x * fy
+        L = interaction_matrix(px_ideal[ok], depth[ok], camera)
+        d = correction_rate(L, rows_px[ok], twist, camera).reshape(-1)
+        A = L.reshape(2 * n, 6)
         r = residual_px[ok].reshape(-1)
-        d = d_px_per_s[ok].reshape(-1)
-        Q, _ = np.linalg.qr(A)
-        r_perp = r - Q @ (Q.T @ r)
-        d_perp = d - Q @ (Q.T @ d)
+        # what a pose correction explains is projected out of both (least squares on
+        # the 6x6 normal equations: a tenth of a QR of the (2n, 6) matrix here)
+        rd = np.column_stack((r, d))
+        try:
+            rd_perp = rd - A @ np.linalg.solve(A.T @ A, A.T @ rd)
+        except np.linalg.LinAlgError:
+            return None
+        r_perp, d_perp = rd_perp[:, 0], rd_perp[:, 1]
         dd = float(d_perp @ d_perp)
         if dd <= 0.0:
             return None
