@@ -104,14 +104,20 @@ class _TwiceAsFast:
 
 def _run_stream(camera: dict, frames, overrides: dict, seed: int):
     """Feed frames through VoStream; (stamps s, poses, covariances, ok per frame,
-    resets)."""
+    resets, located per published pose, the rolling shutter's readout: the most applied
+    and the last estimate [ms], docs/method.md §15.17)."""
     cfg = dataclasses.replace(VoConfig(), **overrides).validate()
     stream = VoStream(cfg, seed=seed)
     stream.set_camera(PinholeCamera.from_camera_info(camera))
     stamps, poses, covs, oks, located = [], [], [], [], []
+    readout = {'readout_applied_ms_max': 0.0, 'readout_estimate_ms': float('nan')}
     for stamp_ns, gray, known in frames:
         res = stream.process(gray, stamp_ns,
                              known if stream.state.value == 'initialising' else None)
+        readout['readout_applied_ms_max'] = max(readout['readout_applied_ms_max'],
+                                                res.readout_s * 1e3)
+        if np.isfinite(res.readout_estimate_s):
+            readout['readout_estimate_ms'] = res.readout_estimate_s * 1e3
         oks.append(bool(res.ok))
         if oks[-1]:
             stamps.append(stamp_ns * 1e-9)
@@ -121,7 +127,7 @@ def _run_stream(camera: dict, frames, overrides: dict, seed: int):
     if stream.vo is not None:
         stream.vo.close()
     return (np.array(stamps), np.array(poses), np.array(covs), oks, stream.n_resets,
-            np.array(located, bool))
+            np.array(located, bool), readout)
 
 
 #: the rendered sequences through other cameras (a name's suffix: SynthConfig fields);
@@ -223,7 +229,7 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
         gt_s = np.asarray(gt_ns) * 1e-9
         out = (np.array(s.est_stamps_s), np.array(s.est_T_world_cam),
                np.array(s.est_pose_cov), [f.ok for f in s.frame_stats], s.n_resets,
-               np.array(s.est_located, bool))
+               np.array(s.est_located, bool), {})
     else:
         data, frames, preset = _folder_frames(base)
         gt_s, gt_T = data.gt_stamps_s, data.gt_T_world_cam
@@ -231,13 +237,13 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
         if name.endswith('_from12'):
             step = 2 if base == 'kitti_2x' else 1
             start = data.stamps_ns[KITTI_GT_RELIABLE_FROM // step] * 1e-9
-    stamps, poses, covs, oks, resets, located = out
+    stamps, poses, covs, oks, resets, located, readout = out
     if len(stamps) < 3:
         return {'sequence': name, 'seed': seed, 'pct_tracked': 0.0, 'first_pose_frame': None,
                 'pct_tracked_after_first': 0.0, 'ate_pct_path': float('nan'),
                 'resets': resets, 'rot_err_max_deg': float('nan'), 'rot_nees_mean': float('nan'),
                 'rot_nees_median': float('nan'), 'rot_nees_pct_above_99_9': float('nan'),
-                'rot_nees_frames': 0}
+                'rot_nees_frames': 0, **readout}
     # the ATE over the poses that have a position: orientation-only poses before a map
     # (docs/method.md §15.9) publish the attach point with an unknown position
     ate = float('nan')
@@ -255,7 +261,7 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
             if located.any() else None,
             'pct_tracked_after_first': 100.0 * sum(after) / max(len(after), 1),
             'ate_pct_path': ate, 'resets': resets,
-            'rot_err_max_deg': float(np.max(rn.err_deg)), **rn.to_dict()}
+            'rot_err_max_deg': float(np.max(rn.err_deg)), **rn.to_dict(), **readout}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -277,14 +283,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     print(f'# rotation NEES of the published covariance ({machine()})')
     print('| sequence | seed | first pose | tracked % after it | resets | ATE % path | '
-          'max rot err deg | NEES mean | median | % > 16.27 |')
-    print('|---|---|---|---|---|---|---|---|---|---|')
+          'max rot err deg | NEES mean | median | % > 16.27 | readout ms applied / est |')
+    print('|---|---|---|---|---|---|---|---|---|---|---|')
     for name in args.sequences:
         real = _synthetic_name(name) is None
         for seed in (args.seeds[:1] if real else args.seeds):
             if real and name != 'demo' and shared_data(
                     'middlebury_dino' if name == 'dino' else 'kitti06_f0-50') is None:
-                print(f'| {name} | - | skipped: ../shared/data absent | | | | | | | |')
+                print(f'| {name} | - | skipped: ../shared/data absent | | | | | | | | |')
                 continue
             r = run_one(name, seed, overrides)
             rows.append(r)
@@ -293,7 +299,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['pct_tracked_after_first']:.1f} | {r['resets']} | "
                   f"{r['ate_pct_path']:.3f} | {r['rot_err_max_deg']:.2f} | "
                   f"{r['rot_nees_mean']:.1f} | {r['rot_nees_median']:.2f} | "
-                  f"{r['rot_nees_pct_above_99_9']:.1f} |", flush=True)
+                  f"{r['rot_nees_pct_above_99_9']:.1f} | "
+                  f"{r.get('readout_applied_ms_max', float('nan')):.1f} / "
+                  f"{r.get('readout_estimate_ms', float('nan')):.1f} |", flush=True)
     if args.json:
         write_json(args.json, {'machine': machine(), 'overrides': overrides, 'runs': rows})
     return 0

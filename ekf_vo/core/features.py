@@ -503,8 +503,9 @@ class FeatureTracker:
         It is tried only while the light counts as changing (exposure.py: the recent
         pairs, measured after KLT, above klt_flicker_log_gain) or when this pair alone
         is a jump (under steady light measured only when the frame's mean grey level
-        moved enough to be one, `_frame_brightness_jumped`), and kept only when it is a gain of the whole frame: measured again
-        around where KLT found the tracks (`_klt`), the recent changes or this one are
+        moved enough to be one, `_frame_brightness_jumped`), and kept only when it is a
+        gain of the whole frame: measured again around where KLT found the tracks
+        (`_klt`), the recent changes or this one are
         at least COMMON_RATIO times the spread of the tracks' own ratios. Judged on
         this pair too, a jump of the light after a steady spell is divided out at once,
         not once half the window has seen it. On KITTI each patch's brightness changes

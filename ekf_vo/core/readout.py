@@ -8,8 +8,8 @@ covariance's 99.9 % bound.
 
 The readout leaves a signature no pose can take up. If the pixels were corrected with a
 readout tau_used and the camera's is tau, a map point's corrected pixel is off its
-projection by (tau - tau_used) d, where d = -dz/dtau is how the correction moves it per
-second of readout: its row's time offset times the image motion there. So, per tracked
+projection by (tau - tau_used) d, where d (`correction_rate`) is its row's time offset
+per second of readout times the image motion there. So, per tracked
 frame, the post-update residuals r (2n) of the map points the update kept are regressed
 on d with the camera's six degrees of freedom projected out of both (the pinhole's
 interaction matrix at each point's depth, so that nothing a pose correction explains is
@@ -20,10 +20,12 @@ taken for a readout):
 s^2 the residuals' own variance after the fit (2n - 7 degrees of freedom). Each frame
 gives tau_used + delta with that variance; the frames are fused with a fading memory
 (`MEMORY_FRAMES`), so that errors common to many frames (the map's, KLT's) cannot make
-the estimate ever more certain. The estimate is applied once it is significant
+the estimate ever more certain, and its sigma is widened by the frames' scatter about
+it (the Birge ratio, `sigma_s`). The estimate is applied once it is significant
 (`SIGNIFICANCE` standard deviations above zero) and at least `MIN_APPLIED_S`; until then
-the user's `rolling_shutter_s` is. A camera that does not turn or move gives frames of
-little weight, and the estimate stays where it was.
+the user's `rolling_shutter_s` is. Applied, its uncertainty (at least
+`MIN_RELATIVE_SIGMA` of it) goes into the pixels' noise. A camera that does not turn or
+move gives frames of little weight, and the estimate stays where it was.
 """
 from __future__ import annotations
 
@@ -47,8 +49,8 @@ MIN_POINTS = 20
 MAX_FRAME_SIGMA_S = 0.05
 #: the uncertainty of an applied estimate is at least this share of it: under a steady
 #: turn the map takes in part of the skew (its points were triangulated from frames
-#: skewed alike), so the estimate falls short, by up to 16 % on the rendered ground robot
-#: (25 ms of 30), however many frames agree
+#: skewed alike), so the estimate falls short, by up to a quarter on the rendered ground
+#: robot (23 ms of 30), however many frames agree
 MIN_RELATIVE_SIGMA = 0.3
 
 

@@ -13,7 +13,7 @@ def rotation_errors_deg(trajectory: str, seed: int, fault: str, overrides: dict
     share of frames published after the first."""
     from bench import rotation_nees as bench
     gt_s, gt_T, out = bench._synthetic(trajectory, seed, overrides, fault=fault)
-    stamps, poses, _, oks, _, _ = out
+    stamps, poses, _, oks = out[:4]
     first = oks.index(True)
     k = np.searchsorted(gt_s, stamps - 1e-6)
     R0 = gt_T[k[0]][:3, :3] @ poses[0][:3, :3].T
