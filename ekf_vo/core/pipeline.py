@@ -46,8 +46,7 @@ from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
 from .orientation_only import OrientationChain
 from .refind import MapPointFinder
-from .readout import (MIN_POINTS as READOUT_MIN_POINTS, ReadoutEstimate, correction_rate,
-                      interaction_matrix)
+from .readout import ReadoutEstimate, correction_rate, interaction_matrix
 from .relocalise import Relocaliser
 
 #: A frame whose tracks landed a median of more than this [px] from their prediction
@@ -328,9 +327,7 @@ class VisualOdometry(Initialisation, LossHandling):
         correction moves each, with the updated motion."""
         if not self.readout.enabled:
             return
-        mi = self._map_inliers
-        if np.count_nonzero(mi) < READOUT_MIN_POINTS:
-            return
+        mi = self._map_inliers           # too few of them: observe() says nothing
         cam, T = self.camera, self.ekf.T_world_cam
         kept = rows[mi]
         X_cam = (X[mi] - T[:3, 3]) @ T[:3, :3]

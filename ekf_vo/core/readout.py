@@ -99,7 +99,6 @@ class ReadoutEstimate:
         self._weighted = 0.0      # sum of estimate / var, faded
         self._weighted_sq = 0.0   # sum of estimate^2 / var, faded
         self._count = 0.0         # frames, faded
-        self.n_frames = 0
 
     @property
     def estimate_s(self) -> float | None:
@@ -193,5 +192,4 @@ class ReadoutEstimate:
         self._weighted = fade * self._weighted + frame_estimate / var
         self._weighted_sq = fade * self._weighted_sq + frame_estimate ** 2 / var
         self._count = fade * self._count + 1.0
-        self.n_frames += 1
         return frame_estimate
