@@ -135,6 +135,27 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def _homogeneous(p: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels -> (N, 3) homogeneous pixels."""
+    return np.hstack((p, np.ones((p.shape[0], 1))))
+
+
+def _fundamental(R: np.ndarray, t: np.ndarray, K_inv: np.ndarray) -> np.ndarray:
+    """F = K^-T [t]x R K^-1 (H&Z eq. 9.18)."""
+    return K_inv.T @ _skew(t) @ R @ K_inv
+
+
+def _sampson_h(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Signed Sampson distances of homogeneous pixels x1, x2 (N, 3) to one or a stack of
+    fundamental matrices F (..., 3, 3) -> (..., N); see sampson_px."""
+    Fx1 = x1 @ np.swapaxes(F, -1, -2)
+    Ftx2 = x2 @ F
+    num = np.sum(x2 * Fx1, axis=-1)
+    den = np.sqrt(Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2
+                  + Ftx2[..., 1] ** 2)
+    return num / np.maximum(den, 1e-300)
+
+
 def sampson_px(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
                K: np.ndarray) -> np.ndarray:
     """Signed Sampson distance (pixels) of correspondences to the epipolar geometry.
@@ -143,23 +164,24 @@ def sampson_px(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarra
     (F^T x2)_1^2 + (F^T x2)_2^2) (H&Z eq. 11.9): the first-order geometric distance of
     (x1, x2) to the nearest exact correspondence. Shapes: p_ref, p_cur (N, 2) -> (N,).
     """
-    K_inv = np.linalg.inv(K)
-    F = K_inv.T @ _skew(t) @ R @ K_inv
-    x1 = np.c_[p_ref, np.ones(p_ref.shape[0])]
-    x2 = np.c_[p_cur, np.ones(p_cur.shape[0])]
-    Fx1 = x1 @ F.T
-    Ftx2 = x2 @ F
-    num = np.einsum('ij,ij->i', x2, Fx1)
-    den = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
-    return num / np.maximum(den, 1e-300)
+    return _sampson_h(_fundamental(R, t, np.linalg.inv(K)), _homogeneous(p_ref),
+                      _homogeneous(p_cur))
 
 
 def _tangent_basis(t: np.ndarray) -> np.ndarray:
     """(3, 2) orthonormal basis of the plane orthogonal to the unit vector t."""
     a = np.eye(3)[int(np.argmin(np.abs(t)))]
-    b1 = np.cross(t, a)
+    b1 = _skew(t) @ a                 # t x a (np.cross costs 10x more on 3-vectors)
     b1 /= np.linalg.norm(b1)
-    return np.c_[b1, np.cross(t, b1)]
+    return np.column_stack((b1, _skew(t) @ b1))
+
+
+#: refine_relative_pose's central-difference step (radians of rotation; the same move of
+#: the unit translation on its sphere)
+_DIFF_STEP = 1e-6
+#: its rotation increments exp([+h e_k]x) for k = 0, 1, 2, then exp([-h e_k]x)
+_DIFF_ROTATIONS = np.stack([cv2.Rodrigues(sign * _DIFF_STEP * np.eye(3)[k])[0]
+                            for sign in (1.0, -1.0) for k in range(3)])
 
 
 def refine_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
@@ -175,14 +197,19 @@ def refine_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
     t <- normalise(t + B a) with B a tangent basis. Only correspondences within `gate_px`
     of the current model enter each iteration; Huber weights with `huber_px` keep
     moderate outliers from pulling the model. The Jacobian is numerical (central
-    differences, 5 columns): cheap for a few hundred points and free of algebra slips.
+    differences, 5 columns, the ten perturbed models evaluated as one stack): cheap for
+    a few hundred points and free of algebra slips.
 
     Returns the refined (R (3, 3), t (3,) unit).
     """
     R = np.asarray(R, np.float64)
     t = np.asarray(t, np.float64).reshape(3)
     t = t / np.linalg.norm(t)
-    h = 1e-6
+    h = _DIFF_STEP
+    K_inv = np.linalg.inv(K)
+    x1_all, x2_all = _homogeneous(p_ref), _homogeneous(p_cur)
+    t_signs = np.array([1.0, 1.0, -1.0, -1.0])[:, None]
+    damping = 1e-9 * np.eye(5)
 
     def apply(R0: np.ndarray, t0: np.ndarray, B: np.ndarray, d: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -191,24 +218,25 @@ def refine_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
         return R1, t1 / np.linalg.norm(t1)
 
     for _ in range(iterations):
-        r = sampson_px(R, t, p_ref, p_cur, K)
+        r = _sampson_h(_fundamental(R, t, K_inv), x1_all, x2_all)
         sel = np.abs(r) < gate_px
         if int(sel.sum()) < _MIN_POINTS_ESSENTIAL * 2:
             break
-        pr, pc, r = p_ref[sel], p_cur[sel], r[sel]
+        x1, x2, r = x1_all[sel], x2_all[sel], r[sel]
         B = _tangent_basis(t)
-        J = np.empty((r.shape[0], 5))
-        for k in range(5):          # 5 parameters, not a per-feature loop
-            d = np.zeros(5)
-            d[k] = h
-            Rp, tp = apply(R, t, B, d)
-            Rm, tm = apply(R, t, B, -d)
-            J[:, k] = (sampson_px(Rp, tp, pr, pc, K) - sampson_px(Rm, tm, pr, pc, K)) / (2 * h)
+        # the ten models of the central differences: R exp([+-h e_k]x), then t moved by
+        # +-h along the tangent basis (+h first, then -h, in each)
+        t_moved = t + h * t_signs * np.vstack((B.T, B.T))                 # (4, 3)
+        t_moved /= np.linalg.norm(t_moved, axis=1, keepdims=True)
+        F_rot = K_inv.T @ _skew(t) @ (R @ _DIFF_ROTATIONS) @ K_inv               # (6, 3, 3)
+        F_tra = K_inv.T @ np.stack([_skew(v) for v in t_moved]) @ R @ K_inv   # (4, 3, 3)
+        r_rot, r_tra = _sampson_h(F_rot, x1, x2), _sampson_h(F_tra, x1, x2)
+        J = np.column_stack(((r_rot[:3] - r_rot[3:]).T, (r_tra[:2] - r_tra[2:]).T)) / (2 * h)
         a = np.abs(r)
         w = np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-300))
         JtW = J.T * w
         try:
-            delta = np.linalg.solve(JtW @ J + 1e-9 * np.eye(5), -JtW @ r)
+            delta = np.linalg.solve(JtW @ J + damping, -JtW @ r)
         except np.linalg.LinAlgError:
             break
         R, t = apply(R, t, B, delta)
@@ -272,8 +300,8 @@ def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.nda
     # the reference camera, depth from x2 ~ lambda R x1 + t
     inl = np.abs(sampson_px(R, t, p_ref, p_cur, K)) < gate_px
     K_inv = np.linalg.inv(K)
-    x1 = np.c_[p_ref[inl], np.ones(np.count_nonzero(inl))] @ K_inv.T
-    x2 = np.c_[p_cur[inl], np.ones(np.count_nonzero(inl))] @ K_inv.T
+    x1 = _homogeneous(p_ref[inl]) @ K_inv.T
+    x2 = _homogeneous(p_cur[inl]) @ K_inv.T
     a, b = np.cross(x2, x1 @ R.T), np.cross(x2, t)
     depth_sign = -np.einsum('ij,ij->i', a, b)
     return (R, t) if np.count_nonzero(depth_sign > 0) >= np.count_nonzero(depth_sign < 0) \
