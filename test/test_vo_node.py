@@ -3,7 +3,8 @@
 Checks what a robot relies on: odometry for >= 95 % of the frames after bootstrap, stamps
 equal to the image stamps, frames as configured, covariance symmetric positive definite and
 non-zero, every listed raw encoding (with row padding) and compressed input, the map
-delivered to a subscriber that joins late, ~/reset, and bad input surviving.
+delivered to a subscriber that joins late, ~/status still coming when the images stop,
+~/reset, and bad input surviving.
 """
 from __future__ import annotations
 
@@ -96,6 +97,14 @@ def test_raw_every_encoding_frames_and_late_map(tmp_path, demo):
         # the demo's global shutter: the readout estimated, not applied (method §15.17)
         assert float(values['readout_ms']) == 0.0
         assert abs(float(values['readout_estimate_ms'])) < 2.0
+
+        # after the last image ~/status keeps coming (every 0.5 s), its counters current
+        n_status = len(feed.status)
+        assert h.spin_until(lambda: len(feed.status) >= n_status + 2, 3.0), \
+            'no ~/status after the images stopped'
+        values = {kv.key: kv.value for kv in feed.status[-1].status[0].values}
+        assert int(values['received']) == len(stamps)
+        assert conv.stamp_to_ns(feed.status[-1].header.stamp) == stamps[-1]
 
         # a subscriber that joins late still gets the map (transient local)
         clouds: list[PointCloud2] = h.record(PointCloud2, '/map_points', LATCHED)

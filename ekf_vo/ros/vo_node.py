@@ -44,6 +44,9 @@ from .params import declare_from_dataclass, install_validation, warn_unknown_par
 
 #: each kind of rejected input is logged at most this often (and always counted)
 WARN_PERIOD_S = 5.0
+#: ~/status at most this often after a processed frame, and at least this often while the
+#: estimator has said anything (its counters current when the images stop) [s]
+STATUS_PERIOD_S = 0.5
 #: the whole map is re-sent once the metric scale moved by this fraction, or its offset
 #: by OFFSET_REPUBLISH_M, since it was last sent (metric_scale.py)
 SCALE_REPUBLISH_REL = 0.002
@@ -256,6 +259,7 @@ class VoNode(Node):
                 while not self._stop.is_set() and (
                         not self._queue or (replay and self.stream.camera is None)):
                     self._queue_cv.wait(timeout=0.2)
+                    self._status_while_idle()
                 # the head waits (bounded) for the CameraInfo of its stamp
                 while not self._stop.is_set() and self._queue and \
                         self._awaits_camera_info(self._queue[0]):
@@ -274,6 +278,16 @@ class VoNode(Node):
                 with self._lock:
                     self.stream.restart()
                     self._map_restarted = True
+
+    def _status_while_idle(self) -> None:
+        """~/status again when no frame has sent one for STATUS_PERIOD_S (a paused
+        camera, the end of a bag): the last state with the counters as they are now, e.g.
+        the frames dropped since. On the worker thread, as the estimator is idle there."""
+        result = self._last_result
+        if result is not None and \
+                time.perf_counter() - self._last_status_time > STATUS_PERIOD_S:
+            self._last_status_time = time.perf_counter()
+            self._publish_status(result)
 
     def _process(self, stamp_ns: int, gray: np.ndarray, received: float) -> None:
         # the estimator runs outside the node's lock: callbacks (CameraInfo, ~/reset,
@@ -321,7 +335,7 @@ class VoNode(Node):
         if self.debug_pub.get_subscription_count() > 0:
             self._publish_debug(gray, result)
         now = time.perf_counter()
-        if now - self._last_status_time > 0.5:
+        if now - self._last_status_time > STATUS_PERIOD_S:
             self._last_status_time = now
             self._publish_status(result)
 
