@@ -100,7 +100,7 @@ def test_speed_and_memory(quick_run):
         # (docs/ros.md); behind rarely: at most a tenth of the frames (0-1 of 100 at 30 Hz
         # on this 2-core machine, which also runs the player and map_node). The speed
         # target itself (no drop, p95) is bench.latency's and the report's.
-        dropped = lat['node_counters']['dropped_behind']
+        dropped = lat['dropped_behind']
         assert lat['no_odometry_after_first'] <= dropped, lat
         assert dropped <= 0.1 * lat['frames_sent'], lat
         assert lat['map_clouds_nonempty'] > 0, lat

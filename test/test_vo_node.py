@@ -104,7 +104,6 @@ def test_raw_every_encoding_frames_and_late_map(tmp_path, demo):
             'no ~/status after the images stopped'
         values = {kv.key: kv.value for kv in feed.status[-1].status[0].values}
         assert int(values['received']) == len(stamps)
-        assert conv.stamp_to_ns(feed.status[-1].header.stamp) == stamps[-1]
 
         # a subscriber that joins late still gets the map (transient local)
         clouds: list[PointCloud2] = h.record(PointCloud2, '/map_points', LATCHED)

@@ -259,7 +259,8 @@ class VoNode(Node):
                 while not self._stop.is_set() and (
                         not self._queue or (replay and self.stream.camera is None)):
                     self._queue_cv.wait(timeout=0.2)
-                    self._status_while_idle()
+                    if not self._queue:
+                        self._status_while_idle()
                 # the head waits (bounded) for the CameraInfo of its stamp
                 while not self._stop.is_set() and self._queue and \
                         self._awaits_camera_info(self._queue[0]):
