@@ -116,7 +116,10 @@ def _drops(feed: Feeder, stamps: list[int]) -> dict:
     res = {'frames_sent': len(stamps), 'odometry_received': len(odom),
            'dropped': len(stamps) - len(odom),
            'no_odometry_after_first': sum(1 for s in stamps if first is not None
-                                          and s >= first and s not in odom)}
+                                          and s >= first and s not in odom),
+           # which frames (0-based, in the order sent): where the node fell behind
+           'missing_after_first_frames': [k for k, s in enumerate(stamps) if first is not None
+                                          and s >= first and s not in odom]}
     if not feed.status:
         return dict(res, node_counters={}, status_covers=0, status={})
     last = feed.status[-1]
@@ -191,9 +194,11 @@ def report(r: dict) -> None:
           f'{r["e2e_max_ms"]:.1f} ms{verdict}')
     print(f'inside vo_node (receive -> publish): p50 {r["node_p50_ms"]:.1f} ms, p95 '
           f'{r["node_p95_ms"]:.1f} ms; {r["node_fps"]:.1f} frames/s')
+    missing = r['missing_after_first_frames']
     print(f'frames: sent {r["frames_sent"]}, odometry {r["odometry_received"]}, sent - '
           f'odometry {r["dropped"]} (bootstrap frames give none; missing after the first '
-          f'odometry: {r["no_odometry_after_first"]})')
+          f'odometry: {r["no_odometry_after_first"]}{f", frames {missing}" if missing else ""}'
+          f'; target: none {"met" if not missing else "NOT met"})')
     c = r['node_counters']
     other = {k: v for k, v in c.items() if v and k not in
              ('received', 'processed', 'published', 'dropped_behind')}
