@@ -327,7 +327,7 @@ class VoConfig(_Params):
     # ---- local map: keyframes, windowed adjustment (ekf_vo/core/local_map.py) ----
     local_map: bool = param(
         True, 'Keyframes and a windowed bundle adjustment that refines the map points and '
-        'the keyframe poses in a worker thread (docs/method.md §12); off = points are '
+        'the keyframe poses in a worker process (docs/method.md §12); off = points are '
         'triangulated once and never refined.', group='local_map')
     keyframe_min_covisibility: float = param(
         0.7, 'A frame becomes a keyframe when fewer than this share of the last keyframe\'s '

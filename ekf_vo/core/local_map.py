@@ -1,12 +1,12 @@
-"""The local map: keyframes, and the windowed bundle adjustment run in a worker thread.
+"""The local map: keyframes, and the windowed bundle adjustment run beside the frame loop.
 
 docs/method.md §12. The pipeline hands every tracked frame's pose and observations to
 `LocalMapper.consider`; a frame becomes a keyframe when the last keyframe's map points are
 being lost (covisibility), or when the camera has moved or turned enough since it
 (ORB-SLAM's keyframe rules, Mur-Artal et al., T-RO 2015, sec. V-E, in a simpler form).
 Each new keyframe starts an adjustment of the last `ba_window_keyframes` keyframes and the
-map points they see (local_ba.py) on a snapshot, in a worker thread, so the frame loop
-goes on; the result is applied before the update of the frame `ba_apply_after_frames`
+map points they see (local_ba.py) on a snapshot, in a worker process (ba_process.py),
+so the frame loop goes on; the result is applied before the update of the frame `ba_apply_after_frames`
 later (`harvest`), waiting for the worker only if it is not done by then, so that the
 result never depends on timing (offline and live runs agree).
 
@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..config import VoConfig
+from . import ba_process
 from .local_ba import WindowProblem, WindowSolution, adjust_window
 from .map import LandmarkMap
 
@@ -93,7 +94,7 @@ class LocalMapper:
     def __init__(self, cfg: VoConfig, K: np.ndarray) -> None:
         self.cfg = cfg
         self.K = np.asarray(K, float)
-        self._pool: ThreadPoolExecutor | None = None
+        ba_process.start()      # ahead of the first adjustment (~0.3 s to start)
         self.stats = AdjustmentStats()
         self.keyframes: list[Keyframe] = []
         self._pending: _Pending | None = None
@@ -104,11 +105,14 @@ class LocalMapper:
         self._pending = None
 
     def close(self, wait: bool = True) -> None:
-        """Stop the worker thread (a running adjustment finishes; its result is dropped)."""
-        self._pending = None
-        if self._pool is not None:
-            self._pool.shutdown(wait=wait)
-            self._pool = None
+        """Drop a running adjustment's result (it finishes on the shared worker; `wait`:
+        wait for it to)."""
+        pend, self._pending = self._pending, None
+        if wait and pend is not None:
+            try:
+                pend.future.result()
+            except Exception:  # noqa: BLE001 - its result is dropped either way
+                pass
 
     # ------------------------------------------------------------------ keyframes
     def consider(self, frame_index: int, T_world_cam: np.ndarray, ids: np.ndarray,
@@ -246,9 +250,7 @@ class LocalMapper:
             return
         problem, point_ids, gauge_index = built
         c = self.cfg
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix='ekf_vo_ba')
-        future = self._pool.submit(adjust_window, problem, self.K, c.pixel_sigma_px,
+        future = ba_process.submit(adjust_window, problem, self.K, c.pixel_sigma_px,
                                    c.ba_huber_px, c.ba_max_iterations)
         self._pending = _Pending(future, frame_index + c.ba_apply_after_frames,
                                  list(self.keyframes), point_ids, gauge_index)
@@ -267,7 +269,8 @@ class LocalMapper:
         self._pending = None
         try:
             sol: WindowSolution = pend.future.result()
-        except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError,
+                ba_process.WorkerGone) as exc:
             # a numerically broken window is skipped: the map stays as it was
             self.stats.n_failed += 1
             logger.warning('local map: adjustment skipped (%s); %d so far', exc,

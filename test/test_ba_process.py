@@ -1,0 +1,49 @@
+"""The local map's adjustment worker (core/ba_process.py): a process of its own, errors
+handed back, and a thread when the process is gone (docs/method.md §17.9)."""
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from ekf_vo.core import ba_process
+
+
+@pytest.fixture
+def fresh_worker():
+    """The module's worker as a new process starts it; put back that way afterwards."""
+    def clear():
+        with ba_process._lock:
+            ba_process._worker = None
+            ba_process._thread = None
+    clear()
+    yield
+    clear()
+
+
+def test_jobs_run_in_another_process_and_errors_come_back(fresh_worker) -> None:
+    assert ba_process.submit(os.getpid).result(timeout=30) != os.getpid()
+    with pytest.raises(ValueError):
+        ba_process.submit(int, 'not a number').result(timeout=30)
+    # the worker survives a job's error, and answers in order
+    futures = [ba_process.submit(abs, -k) for k in range(20)]
+    assert [f.result(timeout=30) for f in futures] == list(range(20))
+
+
+def test_a_dead_worker_fails_its_job_and_a_thread_takes_over(fresh_worker) -> None:
+    ba_process.start()
+    worker = ba_process._worker
+    assert worker.submit(os.getpid).result(timeout=30) != os.getpid()
+    pending = worker.submit(time.sleep, 5.0)
+    worker._proc.kill()
+    with pytest.raises(ba_process.WorkerGone):
+        pending.result(timeout=30)
+    assert ba_process.submit(os.getpid).result(timeout=30) == os.getpid()
+
+
+def test_the_worker_ends_with_its_parent(fresh_worker) -> None:
+    ba_process.start()
+    proc = ba_process._worker._proc
+    proc.stdin.close()              # what the parent's exit does
+    assert proc.wait(timeout=30) == 0
