@@ -59,7 +59,9 @@ def test_core_imports_numpy_and_opencv_only():
                'time', 'math', 'typing', 'collections', 'functools', 'itertools',
                'threading',   # stdlib only: the stream guards its inputs with a lock
                'concurrent',  # the local map's adjustment worker (core/local_map.py)
-               'bisect'}      # CameraInfo by stamp (core/pairing.py)
+               'bisect',      # CameraInfo by stamp (core/pairing.py)
+               # the adjustment's worker process (core/ba_process.py): stdlib only
+               'os', 'pickle', 'signal', 'struct', 'subprocess', 'sys'}
     lazy_ok = {('multiview.py', 'scipy')}   # bundle adjustment, imported in the function
     for path in core.glob('*.py'):
         tree = ast.parse(path.read_text())
