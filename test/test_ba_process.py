@@ -47,3 +47,24 @@ def test_the_worker_ends_with_its_parent(fresh_worker) -> None:
     proc = ba_process._worker._proc
     proc.stdin.close()              # what the parent's exit does
     assert proc.wait(timeout=30) == 0
+
+
+def test_the_estimator_goes_on_when_the_worker_dies(fresh_worker) -> None:
+    """The demo with the worker killed while its adjustments run: every frame is still
+    processed, tracking goes on, and the adjustments after it run in a thread."""
+    from ekf_vo.config import VoConfig
+    from ekf_vo.core.stream import VoStream
+    from ekf_vo.tools.demo import load_demo_frames
+    info, frames = load_demo_frames()
+    stream = VoStream(VoConfig())
+    stream.set_camera(info)
+    killed = False
+    results = []
+    for k, (stamp, gray) in enumerate(frames[:150]):
+        if k == 60:
+            ba_process._worker._proc.kill()
+            killed = True
+        results.append(stream.process(gray, stamp))
+    assert killed and ba_process._thread is not None
+    assert all(r.ok for r in results[80:])
+    assert stream.vo.local_map.stats.n_runs > 0

@@ -6,9 +6,9 @@ being lost (covisibility), or when the camera has moved or turned enough since i
 (ORB-SLAM's keyframe rules, Mur-Artal et al., T-RO 2015, sec. V-E, in a simpler form).
 Each new keyframe starts an adjustment of the last `ba_window_keyframes` keyframes and the
 map points they see (local_ba.py) on a snapshot, in a worker process (ba_process.py),
-so the frame loop goes on; the result is applied before the update of the frame `ba_apply_after_frames`
-later (`harvest`), waiting for the worker only if it is not done by then, so that the
-result never depends on timing (offline and live runs agree).
+so the frame loop goes on; the result is applied before the update of the frame
+`ba_apply_after_frames` later (`harvest`), waiting for the worker only if it is not done
+by then, so that the result never depends on timing (offline and live runs agree).
 
 What an adjustment changes: the map points' positions and covariances, the window's
 keyframe poses, and it culls points whose reprojection error stays large. It never
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import Future
+from concurrent.futures import Future, wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -263,7 +263,7 @@ class LocalMapper:
             return np.zeros(0, np.int64)
         if not pend.future.done():
             t = time.perf_counter()
-            pend.future.result()
+            wait([pend.future])           # a failed job raises below, not here
             self.stats.wait_ms += (time.perf_counter() - t) * 1e3
             self.stats.n_waits += 1
         self._pending = None
@@ -271,7 +271,8 @@ class LocalMapper:
             sol: WindowSolution = pend.future.result()
         except (np.linalg.LinAlgError, FloatingPointError, ValueError,
                 ba_process.WorkerGone) as exc:
-            # a numerically broken window is skipped: the map stays as it was
+            # a numerically broken window, or one whose worker process died, is skipped:
+            # the map stays as it was
             self.stats.n_failed += 1
             logger.warning('local map: adjustment skipped (%s); %d so far', exc,
                            self.stats.n_failed)
