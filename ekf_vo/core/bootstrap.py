@@ -135,7 +135,7 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def _homogeneous(p: np.ndarray) -> np.ndarray:
+def homogeneous(p: np.ndarray) -> np.ndarray:
     """(N, 2) pixels -> (N, 3) homogeneous pixels."""
     return np.hstack((p, np.ones((p.shape[0], 1))))
 
@@ -145,7 +145,7 @@ def _fundamental(R: np.ndarray, t: np.ndarray, K_inv: np.ndarray) -> np.ndarray:
     return K_inv.T @ _skew(t) @ R @ K_inv
 
 
-def _sampson_h(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def sampson_of_fundamental(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Signed Sampson distances of homogeneous pixels x1, x2 (N, 3) to one or a stack of
     fundamental matrices F (..., 3, 3) -> (..., N); see sampson_px."""
     Fx1 = x1 @ np.swapaxes(F, -1, -2)
@@ -164,8 +164,8 @@ def sampson_px(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarra
     (F^T x2)_1^2 + (F^T x2)_2^2) (H&Z eq. 11.9): the first-order geometric distance of
     (x1, x2) to the nearest exact correspondence. Shapes: p_ref, p_cur (N, 2) -> (N,).
     """
-    return _sampson_h(_fundamental(R, t, np.linalg.inv(K)), _homogeneous(p_ref),
-                      _homogeneous(p_cur))
+    return sampson_of_fundamental(_fundamental(R, t, np.linalg.inv(K)), homogeneous(p_ref),
+                      homogeneous(p_cur))
 
 
 def _tangent_basis(t: np.ndarray) -> np.ndarray:
@@ -207,7 +207,7 @@ def refine_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
     t = t / np.linalg.norm(t)
     h = _DIFF_STEP
     K_inv = np.linalg.inv(K)
-    x1_all, x2_all = _homogeneous(p_ref), _homogeneous(p_cur)
+    x1_all, x2_all = homogeneous(p_ref), homogeneous(p_cur)
     t_signs = np.array([1.0, 1.0, -1.0, -1.0])[:, None]
     damping = 1e-9 * np.eye(5)
 
@@ -218,7 +218,7 @@ def refine_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
         return R1, t1 / np.linalg.norm(t1)
 
     for _ in range(iterations):
-        r = _sampson_h(_fundamental(R, t, K_inv), x1_all, x2_all)
+        r = sampson_of_fundamental(_fundamental(R, t, K_inv), x1_all, x2_all)
         sel = np.abs(r) < gate_px
         if int(sel.sum()) < _MIN_POINTS_ESSENTIAL * 2:
             break
@@ -230,7 +230,7 @@ def refine_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
         t_moved /= np.linalg.norm(t_moved, axis=1, keepdims=True)
         F_rot = K_inv.T @ _skew(t) @ (R @ _DIFF_ROTATIONS) @ K_inv             # (6, 3, 3)
         F_tra = K_inv.T @ np.stack([_skew(v) for v in t_moved]) @ R @ K_inv     # (4, 3, 3)
-        r_rot, r_tra = _sampson_h(F_rot, x1, x2), _sampson_h(F_tra, x1, x2)
+        r_rot, r_tra = sampson_of_fundamental(F_rot, x1, x2), sampson_of_fundamental(F_tra, x1, x2)
         J = np.column_stack(((r_rot[:3] - r_rot[3:]).T, (r_tra[:2] - r_tra[2:]).T)) / (2 * h)
         a = np.abs(r)
         w = np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-300))
@@ -300,8 +300,8 @@ def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.nda
     # the reference camera, depth from x2 ~ lambda R x1 + t
     inl = np.abs(sampson_px(R, t, p_ref, p_cur, K)) < gate_px
     K_inv = np.linalg.inv(K)
-    x1 = _homogeneous(p_ref[inl]) @ K_inv.T
-    x2 = _homogeneous(p_cur[inl]) @ K_inv.T
+    x1 = homogeneous(p_ref[inl]) @ K_inv.T
+    x2 = homogeneous(p_cur[inl]) @ K_inv.T
     a, b = np.cross(x2, x1 @ R.T), np.cross(x2, t)
     depth_sign = -np.einsum('ij,ij->i', a, b)
     return (R, t) if np.count_nonzero(depth_sign > 0) >= np.count_nonzero(depth_sign < 0) \

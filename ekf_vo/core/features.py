@@ -506,8 +506,8 @@ class FeatureTracker:
         moved enough to be one, `_frame_brightness_jumped`), and kept only when it is a
         gain of the whole frame: measured again around where KLT found the tracks
         (`_klt`), the recent changes or this one are at least COMMON_RATIO times the
-        spread of the tracks' own ratios. Judged on this pair too, a jump of the light after a steady spell is divided out at once,
-        not once half the window has seen it. On KITTI each patch's brightness changes
+        spread of the tracks' own ratios. Judged on this pair too, a jump of the light
+        after a steady spell is divided out at once, not once half the window has seen it. On KITTI each patch's brightness changes
         on its own by about 3 % as the car drives, as much as its auto-exposure changes
         the frame's: dividing those out made KITTI worse (0.14 -> 0.18 % of the path),
         at twice its frame interval much worse, and the dino's shading too

@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from . import geometry as geo
+from .bootstrap import homogeneous, sampson_of_fundamental
 from .map_uncertainty import relative_pose_covariance
 from .orientation_only import fit_rotation
 
@@ -68,13 +69,7 @@ def _sampson_px(E: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
                 ) -> np.ndarray:
     """Sampson distances [px] of the pixel pairs to the epipolar geometry F = K^-T E K^-1."""
     Ki = np.linalg.inv(K)
-    F = Ki.T @ E @ Ki
-    xa = np.column_stack((pa, np.ones(len(pa))))
-    xb = np.column_stack((pb, np.ones(len(pb))))
-    Fxa, Ftxb = xa @ F.T, xb @ F
-    num = np.sum(xb * Fxa, axis=1)
-    den = Fxa[:, 0] ** 2 + Fxa[:, 1] ** 2 + Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2
-    return np.abs(num) / np.sqrt(np.maximum(den, 1e-300))
+    return np.abs(sampson_of_fundamental(Ki.T @ E @ Ki, homogeneous(pa), homogeneous(pb)))
 
 
 def _normalised(K: np.ndarray, px: np.ndarray) -> np.ndarray:
