@@ -94,14 +94,17 @@ class VoConfig(_Params):
         0.05, 'The largest readout the estimate may apply (a webcam\'s is 10-33 ms).',
         's', 0.0, 1.0, group='front end')
     klt_window_px: int = param(
-        21, 'KLT window side while the light is steady. A smaller one is more precise and '
-        'faster (13: KITTI, dino, the demo and the renders gain) but loses more tracks in '
-        'fast motion (docs/method.md §6.1).', 'px', 5, 101, group='front end')
+        13, 'KLT window side while the light is steady. A small window is more precise (its '
+        'flow is that of fewer pixels) and faster, but alone it loses tracks in fast '
+        'motion; the tracks it loses are tracked again with klt_flicker_window_px '
+        '(docs/method.md §6.1).', 'px', 5, 101, group='front end')
     klt_flicker_window_px: int = param(
         21, 'KLT window side while the brightness changes from frame to frame (a flicker, '
         'a hunting auto-exposure) and for the first frames, before it is measured: a '
-        'larger window loses fewer tracks then (docs/method.md §6.1). 0: always '
-        'klt_window_px.', 'px', 0, 101, group='front end')
+        'larger window loses fewer tracks then; and, while the light is steady, for the '
+        'tracks the klt_window_px window lost (its KLT or forward-backward check failed) '
+        '(docs/method.md §6.1). 0: always klt_window_px, no second window.', 'px', 0, 101,
+        group='front end')
     klt_flicker_log_gain: float = param(
         0.04, 'The light counts as changing when the root mean square, over the last 10 '
         'frame pairs, of the log brightness ratio at the tracks exceeds this (or one pair '

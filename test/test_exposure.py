@@ -1,6 +1,7 @@
 """The brightness change between frames (core/exposure.py, docs/method.md §6.1): measured
 at the tracks of real images panned under a changing exposure; what it chooses, the
-steady light's small KLT window (13 px, set) or the flicker's large one (21 px); and the
+steady light's small KLT window (13 px) or the flicker's large one (21 px), and the large
+one for the tracks the small one loses; and the
 gain divided out before KLT (klt_gain_compensation), on the panned images and through
 the whole estimator on a rendered orbit under a flickering light."""
 from __future__ import annotations
@@ -38,8 +39,9 @@ def _frame(world: np.ndarray, k: int, gain: float) -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-#: a steady light's window smaller than the flicker's (both are 21 px by default)
-SMALL = {'klt_window_px': 13}
+#: a steady light's window smaller than the flicker's (the defaults, set here so that the
+#: window tests hold whatever the defaults are)
+SMALL = {'klt_window_px': 13, 'klt_flicker_window_px': 21}
 
 
 def _windows(world: np.ndarray, gains, **cfg) -> tuple[list[int], FeatureTracker]:
@@ -102,12 +104,68 @@ def test_without_a_flicker_window_the_window_never_changes(world) -> None:
     assert set(chosen) == {SMALL['klt_window_px']}
 
 
-def test_by_default_the_window_is_21_px_whatever_the_light(world) -> None:
-    tracker = FeatureTracker(VoConfig())
-    for k in range(12):
-        tracker.track(_frame(world, k, 1.0))
-        assert tracker.stats.klt_window_px == 21
+def _view(world: np.ndarray, offset) -> np.ndarray:
+    """The view panned by `offset` [px], with 1.5 grey levels of noise."""
+    M = np.float32([[1, 0, -100 - offset[0]], [0, 1, -100 - offset[1]]])
+    img = cv2.warpAffine(world, M, (W, H), flags=cv2.INTER_LINEAR).astype(np.float32)
+    img = img + np.random.default_rng(int(offset[0])).normal(0.0, 1.5, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _tracks_over_a_jump(world: np.ndarray, **cfg) -> tuple[dict, dict, FeatureTracker,
+                                                           tuple[np.ndarray, np.ndarray]]:
+    """Ten frames of a slow pan under a steady light, then a jump of (80, 24) px that
+    the small window's pyramid does not reach (features.py `_track_wide`): the tracks
+    {id: px} before the jump and those of them after it, the tracker, and the two
+    frames."""
+    tracker = FeatureTracker(dataclasses.replace(VoConfig(), **cfg))
+    offset = np.zeros(2)
+    for _ in range(10):
+        last = _view(world, offset)
+        tracker.track(last)
+        offset = offset + STEP
+    before = dict(zip(tracker._ids.tolist(), tracker._px.copy()))
+    jumped = _view(world, offset + [80.0, 24.0])
+    tracker.track(jumped)
+    after = dict(zip(tracker._ids.tolist(), tracker._px.copy()))
     tracker.close()
+    return before, {i: p for i, p in after.items() if i in before}, tracker, (last, jumped)
+
+
+def _klt(frames: tuple[np.ndarray, np.ndarray], px: np.ndarray, window: int) -> np.ndarray:
+    """OpenCV's pyramidal KLT alone, as the tracker calls it without a prediction."""
+    cfg = VoConfig()
+    p = np.float32(px).reshape(-1, 1, 2)
+    out, _, _ = cv2.calcOpticalFlowPyrLK(
+        *frames, p, p.copy(), winSize=(window, window), maxLevel=cfg.klt_pyramid_levels,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    return out.reshape(-1, 2)
+
+
+def test_the_tracks_the_small_window_loses_are_tracked_with_the_large_one(world) -> None:
+    """By default the steady light's window is the small one, and the tracks it loses
+    are tracked again with the large one: as many survive a jump as with the large window
+    alone, and each kept track is the small window's result where that one held."""
+    cfg = VoConfig()
+    assert cfg.klt_window_px < cfg.klt_flicker_window_px
+    before, both, tracker, frames = _tracks_over_a_jump(world)
+    assert tracker.stats.klt_window_px == cfg.klt_window_px   # steady: the small one
+    _, small_only, _, _ = _tracks_over_a_jump(world, klt_flicker_window_px=0)
+    _, large_only, _, _ = _tracks_over_a_jump(world, klt_window_px=cfg.klt_flicker_window_px)
+    assert len(before) > 200
+    assert len(small_only) < 0.5 * len(before)                # the jump is out of its reach
+    assert len(both) >= 0.95 * len(large_only)
+    ids = list(both)
+    px0 = np.array([before[i] for i in ids])
+    small = _klt(frames, px0, cfg.klt_window_px)
+    large = _klt(frames, px0, cfg.klt_flicker_window_px)
+    found = np.array([both[i] for i in ids])
+    is_small = np.all(np.abs(found - small) < 1e-3, axis=1)
+    is_large = np.all(np.abs(found - large) < 1e-3, axis=1) & ~is_small
+    assert np.all(is_small | is_large)
+    assert np.count_nonzero(is_large) == tracker.stats.n_wide_kept > 0.2 * len(before)
+    assert np.count_nonzero(is_small) > 50
 
 
 def _pan_errors(world: np.ndarray, gains, compensate: bool

@@ -121,6 +121,10 @@ class TrackerStats:
     n_border_rejected: int = 0
     n_predicted: int = 0
     n_prediction_retried: int = 0
+    #: tracks the small steady-light window lost and the large window tried again, and
+    #: how many of those it kept (FeatureTracker._track_wide)
+    n_wide_tried: int = 0
+    n_wide_kept: int = 0
     #: median distance [px] between a predicted track's prediction and where KLT found
     #: it, over the predicted tracks that converged from their prediction (0: none)
     prediction_miss_px: float = 0.0
@@ -398,14 +402,16 @@ class FeatureTracker:
         return init, used
 
     def _lk(self, img_from: np.ndarray, img_to: np.ndarray, p_from: np.ndarray,
-            start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            start: np.ndarray, win: tuple[int, int] | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
         """One pyramidal KLT call: (N, 2) float32 positions in `img_to` found from
-        `p_from` in `img_from`, starting at `start`; and whether each converged."""
+        `p_from` in `img_from`, starting at `start`, with the window `win` (None: this
+        frame's); and whether each converged."""
         if p_from.shape[0] == 0:
             return np.empty((0, 2), np.float32), np.zeros(0, bool)
         p_to, st, _ = cv2.calcOpticalFlowPyrLK(
             img_from, img_to, np.ascontiguousarray(p_from, np.float32).reshape(-1, 1, 2),
-            np.array(start, np.float32).reshape(-1, 1, 2), winSize=self._win,  # written to
+            np.array(start, np.float32).reshape(-1, 1, 2), winSize=win or self._win,  # written to
             maxLevel=self._levels, criteria=_KLT_CRITERIA,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         p_to = p_to.reshape(-1, 2)
@@ -465,6 +471,8 @@ class FeatureTracker:
             stats.prediction_miss_px = float(np.median(np.linalg.norm(
                 (p1 - init)[ok & used], axis=1)))
         good = ok & self._fb_passes(gray, p0, p1, init)
+        if self._win[0] < self._flicker_win and not good.all():
+            self._track_wide(gray, p0, init, p1, ok, good, stats)
         retry = used & ~good
         converged = ok.copy()
         if retry.sum() >= _RETRY_MIN_FAILED_SHARE * max(stats.n_predicted, 1):
@@ -487,6 +495,29 @@ class FeatureTracker:
         self._px = np.ascontiguousarray(p1[keep], np.float32)
         self._age = self._age[keep] + 1
         return p0[keep], self._px
+
+    def _track_wide(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
+                    p1: np.ndarray, ok: np.ndarray, good: np.ndarray,
+                    stats: TrackerStats) -> None:
+        """The tracks the small steady-light window lost (KLT or its forward-backward
+        check failed), tracked again from the same start with the large window
+        (klt_flicker_window_px); p1, ok and good are updated in place.
+
+        A small window is more precise where it holds (its flow is that of fewer
+        pixels), but in fast motion it loses tracks a large one keeps: a car turning
+        at 19 m/s and the hand-held camera lost 15-30 % of their tracks to the check,
+        then the map, and went degrees off (docs/method.md §6.1). Here each track gets
+        the small window's precision where it converges, and the large window's reach
+        where it does not."""
+        rows = np.flatnonzero(~good)
+        win = (self._flicker_win, self._flicker_win)
+        p1_wide, ok_wide = self._lk(self._prev_gray, gray, p0[rows], start[rows], win)
+        ok_wide &= self._fb_passes(gray, p0[rows], p1_wide, start[rows], win)
+        kept = rows[ok_wide]
+        p1[kept] = p1_wide[ok_wide]
+        ok[kept] = True
+        good[kept] = True
+        stats.n_wide_tried, stats.n_wide_kept = len(rows), len(kept)
 
     def _gain_to_divide(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
                         gray_integral: np.ndarray | None) -> float | None:
@@ -559,12 +590,12 @@ class FeatureTracker:
             self._px = np.ascontiguousarray(self._px[keep])
 
     def _fb_passes(self, gray: np.ndarray, p0: np.ndarray, p1: np.ndarray,
-                   start: np.ndarray) -> np.ndarray:
+                   start: np.ndarray, win: tuple[int, int] | None = None) -> np.ndarray:
         """The backward check of forward results p1 (found from p0, starting at `start`):
         True where tracking p1 back lands within klt_fb_max_px of p0. As the forward pass
         started at `start`, the backward one starts at that offset mirrored (without a
         prior: at p1 itself, independent of p0, as in OpenCV's lk_track.py)."""
-        back, ok = self._lk(gray, self._prev_gray, p1, p1 - (start - p0))
+        back, ok = self._lk(gray, self._prev_gray, p1, p1 - (start - p0), win)
         return ok & (np.linalg.norm(back - p0, axis=1) <= self._fb_max)
 
     def _detect(self, gray: np.ndarray) -> int:

@@ -56,6 +56,9 @@ class FrameResult:
     #: change divided out of this frame before KLT, 0 when none was (features.py)
     klt_window_px: int = 0
     klt_log_gain: float = 0.0
+    #: tracks the steady light's small KLT window lost in this frame and the large one
+    #: kept (features.py `_track_wide`): many in fast motion
+    klt_wide_kept: int = 0
     #: the rolling shutter's readout [s] the next frame's pixels are corrected with, and
     #: its estimate from the tracked frames so far, nan before any (readout.py)
     readout_s: float = 0.0
