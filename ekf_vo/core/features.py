@@ -504,11 +504,11 @@ class FeatureTracker:
         (klt_flicker_window_px); p1, ok and good are updated in place.
 
         A small window is more precise where it holds (its flow is that of fewer
-        pixels), but in fast motion it loses tracks a large one keeps: a car turning
-        at 19 m/s and the hand-held camera lost 15-30 % of their tracks to the check,
-        then the map, and went degrees off (docs/method.md §6.1). Here each track gets
-        the small window's precision where it converges, and the large window's reach
-        where it does not."""
+        pixels), but in fast motion it loses tracks a large one keeps: alone, on a car
+        turning at 19 m/s, it lost 15-30 % of the tracks to the check in most frames,
+        and one seed of three went 20 deg off (docs/method.md §6.1). Here each track
+        gets the small window's precision where it converges, and the large window's
+        reach where it does not."""
         rows = np.flatnonzero(~good)
         win = (self._flicker_win, self._flicker_win)
         p1_wide, ok_wide = self._lk(self._prev_gray, gray, p0[rows], start[rows], win)
@@ -538,9 +538,10 @@ class FeatureTracker:
         gain of the whole frame: measured again around where KLT found the tracks
         (`_klt`), the recent changes or this one are at least COMMON_RATIO times the
         spread of the tracks' own ratios. Judged on this pair too, a jump of the light
-        after a steady spell is divided out at once, not once half the window has seen it. On KITTI each patch's brightness changes
-        on its own by about 3 % as the car drives, as much as its auto-exposure changes
-        the frame's: dividing those out made KITTI worse (0.14 -> 0.18 % of the path),
+        after a steady spell is divided out at once, not once half the window has seen
+        it. On KITTI each patch's brightness changes on its own by about 3 % as the car
+        drives, as much as its auto-exposure changes the frame's: dividing those out
+        made KITTI worse (0.14 -> 0.18 % of the path),
         at twice its frame interval much worse, and the dino's shading too
         (docs/method.md §6.1). Only KLT sees the divided frame; the frame kept for the
         next pair is `gray` as it came, so gains do not accumulate."""
