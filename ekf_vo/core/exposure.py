@@ -4,9 +4,10 @@ docs/method.md §6.1. A translational KLT window is more precise the smaller it 
 (bench/track_precision.py), but under a gain that changes from frame to frame (a light
 that flickers, an auto-exposure that hunts) a small window loses far more tracks than a
 large one. So the tracker can use a small window (`klt_window_px`) while the light is
-steady, and the large one (`klt_flicker_window_px`) from the first sign it is not. Both
-are 21 px by default: a small window also loses more tracks in fast motion (§6.1), so it
-is the user's choice.
+steady, and the large one (`klt_flicker_window_px`) from the first sign it is not (13 and
+21 px by default). A small window also loses more tracks in fast motion, so while it is
+used the tracks it loses are tracked again with the large one (features.py
+`_track_wide`, §6.1).
 
 The measure: for each frame pair, the median over the tracks of log(m1 / m0), where m0
 and m1 are the grey-level means of a 31x31 square around a track in the previous frame

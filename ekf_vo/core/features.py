@@ -156,14 +156,15 @@ class FeatureTracker:
             yet, read with getattr).
 
     Motion range: with a window of w px and L pyramid levels, KLT converges for flows of
-    roughly (w / 2) * 2**L px (defaults 21 px, 4 levels: ~160 px; ~100 px with 13 px),
+    roughly (w / 2) * 2**L px (4 levels: ~160 px at 21 px, ~100 px at 13 px),
     enough for KITTI at 10 Hz (50-100 px near the borders) and hand-held 640x480 video at
     30 Hz. A prior (`predicted`) extends it further.
 
     Window: klt_flicker_window_px until the brightness change between frames has been
     measured at the tracks, then klt_window_px while it stays below klt_flicker_log_gain,
-    klt_flicker_window_px again when it does not (exposure.py, docs/method.md §6.1). Both
-    are 21 px by default, so the choice only matters when klt_window_px is set smaller.
+    klt_flicker_window_px again when it does not (exposure.py, docs/method.md §6.1); 13
+    and 21 px by default. While the small window is used, the tracks it loses are tracked
+    again with the large one (`_track_wide`).
     """
 
     def __init__(self, cfg: VoConfig) -> None:
