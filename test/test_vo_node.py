@@ -99,16 +99,21 @@ def test_raw_every_encoding_frames_and_late_map(tmp_path, demo):
         assert abs(float(values['readout_estimate_ms'])) < 2.0
 
         # after the last image ~/status keeps coming (every 0.5 s), its counters current:
-        # once it counts every frame sent (the node may still be working through the last
-        # ones), two more come though no frame does
-        def received() -> int:
-            return int({kv.key: kv.value for kv in feed.status[-1].status[0].values}
-                       ['received'])
-        assert h.spin_until(lambda: received() == len(stamps), 10.0), received()
+        # once it counts every odometry message this subscriber got (the last frame's
+        # among them; the node may still be working through the last ones), two more come
+        # though no frame does, with the same counts. The images travel best effort
+        # (sensor-data QoS), so on a loaded machine a few never reach the node: `received`
+        # is compared with what was sent only within that
+        def counter(key: str) -> int:
+            return int({kv.key: kv.value for kv in feed.status[-1].status[0].values}[key])
+        assert h.spin_until(lambda: counter('published') >= len(feed.odom), 10.0), \
+            (counter('published'), len(feed.odom))
+        counts = counter('received'), counter('published')
         n_status = len(feed.status)
         assert h.spin_until(lambda: len(feed.status) >= n_status + 2, 3.0), \
             'no ~/status after the images stopped'
-        assert received() == len(stamps)
+        assert (counter('received'), counter('published')) == counts
+        assert 0.9 * len(stamps) <= counts[0] <= len(stamps)
 
         # a subscriber that joins late still gets the map (transient local)
         clouds: list[PointCloud2] = h.record(PointCloud2, '/map_points', LATCHED)
