@@ -164,8 +164,8 @@ def sampson_px(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarra
     (F^T x2)_1^2 + (F^T x2)_2^2) (H&Z eq. 11.9): the first-order geometric distance of
     (x1, x2) to the nearest exact correspondence. Shapes: p_ref, p_cur (N, 2) -> (N,).
     """
-    return sampson_of_fundamental(_fundamental(R, t, np.linalg.inv(K)), homogeneous(p_ref),
-                      homogeneous(p_cur))
+    return sampson_of_fundamental(_fundamental(R, t, np.linalg.inv(K)),
+                                  homogeneous(p_ref), homogeneous(p_cur))
 
 
 def _tangent_basis(t: np.ndarray) -> np.ndarray:
@@ -230,7 +230,8 @@ def refine_relative_pose(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
         t_moved /= np.linalg.norm(t_moved, axis=1, keepdims=True)
         F_rot = K_inv.T @ _skew(t) @ (R @ _DIFF_ROTATIONS) @ K_inv             # (6, 3, 3)
         F_tra = K_inv.T @ np.stack([_skew(v) for v in t_moved]) @ R @ K_inv     # (4, 3, 3)
-        r_rot, r_tra = sampson_of_fundamental(F_rot, x1, x2), sampson_of_fundamental(F_tra, x1, x2)
+        r_moved = sampson_of_fundamental(np.concatenate((F_rot, F_tra)), x1, x2)
+        r_rot, r_tra = r_moved[:6], r_moved[6:]
         J = np.column_stack(((r_rot[:3] - r_rot[3:]).T, (r_tra[:2] - r_tra[2:]).T)) / (2 * h)
         a = np.abs(r)
         w = np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-300))

@@ -478,10 +478,9 @@ class FeatureTracker:
         converged = ok.copy()
         if retry.sum() >= _RETRY_MIN_FAILED_SHARE * max(stats.n_predicted, 1):
             stats.n_prediction_retried = int(retry.sum())
-            p1_plain, ok_plain = self._lk(self._prev_gray, gray, p0[retry], p0[retry])
             rows = np.flatnonzero(retry)
-            converged[rows] |= ok_plain
-            ok_plain &= self._fb_passes(gray, p0[rows], p1_plain, p0[rows])
+            p1_plain, converged_plain, ok_plain = self._track_again(gray, p0, p0, rows)
+            converged[rows] |= converged_plain
             p1[rows[ok_plain]] = p1_plain[ok_plain]
             good[rows[ok_plain]] = True
         h, w = gray.shape
@@ -511,14 +510,23 @@ class FeatureTracker:
         gets the small window's precision where it converges, and the large window's
         reach where it does not."""
         rows = np.flatnonzero(~good)
-        win = (self._flicker_win, self._flicker_win)
-        p1_wide, ok_wide = self._lk(self._prev_gray, gray, p0[rows], start[rows], win)
-        ok_wide &= self._fb_passes(gray, p0[rows], p1_wide, start[rows], win)
+        p1_wide, _, ok_wide = self._track_again(gray, p0, start, rows,
+                                                (self._flicker_win, self._flicker_win))
         kept = rows[ok_wide]
         p1[kept] = p1_wide[ok_wide]
         ok[kept] = True
         good[kept] = True
         stats.n_wide_tried, stats.n_wide_kept = len(rows), len(kept)
+
+    def _track_again(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
+                     rows: np.ndarray, win: tuple[int, int] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The tracks `rows` tracked again from `start[rows]` with the window `win`
+        (None: this frame's): their positions in `gray`, whether KLT converged, and
+        whether they also passed the backward check."""
+        p1, converged = self._lk(self._prev_gray, gray, p0[rows], start[rows], win)
+        return p1, converged, converged & self._fb_passes(gray, p0[rows], p1, start[rows],
+                                                          win)
 
     def _gain_to_divide(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
                         gray_integral: np.ndarray | None) -> float | None:
