@@ -239,3 +239,54 @@ def test_an_adjustment_that_raises_is_skipped_and_counted():
     assert len(mapper.harvest(3, landmarks)) == 0
     assert mapper.stats.n_failed == 1 and mapper.stats.as_status()['ba_failed'] == 1
     np.testing.assert_array_equal(landmarks.X_world, X_before)
+
+
+def test_the_adjusted_pose_covariance_is_that_of_the_world_error():
+    """The keyframe marginals, carried to the published convention (position, world
+    rotation vector: R_wc_est = exp(dphi) R_wc_true), against the truth over noise
+    draws: 6 dof -> mean ~6."""
+    from ekf_vo.core.map_uncertainty import adjusted_pose_covariance
+    T, _, fixed, sols = _noise_draws(3, 200)
+    nees = []
+    for sol in sols:
+        for k in np.flatnonzero(~fixed):
+            T_est = sol.T_world_cam[k]
+            dphi = geo.quat_to_rotvec(geo.matrix_to_quat(T_est[:3, :3] @ T[k, :3, :3].T))
+            e = np.concatenate((T_est[:3, 3] - T[k, :3, 3], dphi))
+            nees.append(e @ np.linalg.solve(adjusted_pose_covariance(T_est, sol.T_cov[k]), e))
+    mean = float(np.mean(nees))
+    assert 4.5 < mean < 8.0, mean
+
+
+def test_an_adjusted_keyframe_keeps_the_smaller_of_its_two_anchors():
+    """After an adjustment a free keyframe's anchor is the gauge keyframe's plus the
+    adjustment's covariance of its pose, unless the anchor it had (the filter's when it
+    was made) is smaller: both bound the error of the adjusted pose (§14.2)."""
+    from concurrent.futures import Future
+    from ekf_vo.core.local_map import _Pending
+    from ekf_vo.core.map_uncertainty import adjusted_pose_covariance, carry_pose_covariance
+    rng = np.random.default_rng(6)
+    mapper, landmarks = _mapper_after_a_turn(rng, n_blind=0)
+    kfs = mapper.keyframes
+    for kf in kfs:                                    # the filter's anchors: 10 deg
+        kf.anchor = (np.eye(6) * np.radians(10.0) ** 2, kf.T_world_cam[:3, 3].copy())
+    gauge_anchor = (np.eye(6) * 1e-6, kfs[1].T_world_cam[:3, 3].copy())
+    kfs[1].anchor = gauge_anchor
+    tiny = (np.eye(6) * 1e-12, kfs[5].T_world_cam[:3, 3].copy())
+    kfs[5].anchor = tiny
+    problem, point_ids, gauge = mapper._problem(landmarks)
+    assert gauge == 1 and problem.fixed.tolist() == [True, True, False, False, False, False]
+    sol = adjust_window(problem, K, 1.0, 2.0, 10)
+    future = Future()
+    future.set_result(sol)
+    mapper._pending = _Pending(future, 0, list(kfs), point_ids, gauge)
+    mapper.harvest(0, landmarks)
+    for k in (2, 3, 4):
+        c = sol.T_world_cam[k][:3, 3]
+        expected = carry_pose_covariance(gauge_anchor[0][None], gauge_anchor[1], c)[0] + \
+            adjusted_pose_covariance(sol.T_world_cam[k], sol.T_cov[k])
+        np.testing.assert_allclose(kfs[k].anchor[0], expected, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(kfs[k].anchor[1], c)
+        assert np.trace(kfs[k].anchor[0][3:, 3:]) < 1e-3 * np.radians(10.0) ** 2
+    assert kfs[5].anchor is tiny                      # smaller than the adjustment's
+    assert kfs[0].anchor[0][0, 0] == np.radians(10.0) ** 2   # fixed keyframes keep theirs

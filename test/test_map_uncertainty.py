@@ -128,7 +128,10 @@ def test_too_few_points_add_nothing_rather_than_fail(n):
 def test_the_pipelines_published_rotation_covariance_is_honest_on_a_rendered_walk():
     """Images in, monocular bootstrap, nothing told: the rotation NEES of the published
     poses (aligned at the first one) is neither far above nor far below its chi-square;
-    with the map left out of the covariance (the filter's alone) it is far above."""
+    with the map left out of the covariance (the filter's alone) it is several times
+    larger and frames go beyond the 99.9 % bound. (Measured: medians 0.69 and 3.35, 0 and
+    4.1 % of frames above; the ratio was 5.9 while the keyframes' anchors were always the
+    filter's, which made the map's part larger than it is, docs/method.md §14.2.)"""
     import dataclasses
 
     from ekf_vo.config import VoConfig
@@ -141,7 +144,7 @@ def test_the_pipelines_published_rotation_covariance_is_honest_on_a_rendered_wal
     frames = list(render_sequence(scfg))
     gt_s = np.array([s for s, _, _ in frames]) * 1e-9
     gt_T = np.array([T for _, _, T in frames])
-    medians = {}
+    medians, above = {}, {}
     for with_map in (True, False):
         cfg = dataclasses.replace(VoConfig(), map_in_covariance=with_map)
         vo = VisualOdometry(cfg, PinholeCamera(scfg.width, scfg.height, scfg.K()))
@@ -152,7 +155,9 @@ def test_the_pipelines_published_rotation_covariance_is_honest_on_a_rendered_wal
         rn = rotation_nees(gt_s, gt_T, st, np.array([o[1] for o in out]), st,
                            np.array([o[2] for o in out]), 1e-3)
         medians[with_map] = rn.median
+        above[with_map] = rn.pct_above_999
         if with_map:
             assert len(out) > 140
             assert 0.3 < rn.median < 10 and rn.pct_above_999 < 10, rn.to_dict()
-    assert medians[False] > 5 * medians[True], medians
+    assert medians[False] > 4 * medians[True], medians
+    assert above[False] > above[True], above

@@ -81,6 +81,19 @@ def carry_pose_covariance(cov: np.ndarray, c_from: np.ndarray, r_to: np.ndarray
     return J @ cov @ np.transpose(J, (0, 2, 1))
 
 
+def adjusted_pose_covariance(T_world_cam: np.ndarray, cov_adjusted: np.ndarray
+                             ) -> np.ndarray:
+    """6x6 world covariance (dp, dtheta) of a pose from the windowed adjustment's
+    marginal `cov_adjusted` of its increments (dtheta, dC), with R_cw = exp(dtheta)
+    R_cw0 (local_ba.py): R_wc = exp(-R_wc dtheta) R_wc, so the world rotation vector is
+    -R_wc dtheta and the position error dC."""
+    J = np.zeros((6, 6))
+    J[:3, 3:] = np.eye(3)
+    J[3:, :3] = -np.asarray(T_world_cam, float)[:3, :3]
+    C = J @ np.asarray(cov_adjusted, float) @ J.T
+    return 0.5 * (C + C.T)
+
+
 def anchor_covariance(anchor_cov: np.ndarray, anchor_c: np.ndarray, r_cam: np.ndarray
                       ) -> np.ndarray:
     """The common-mode 6x6 covariance of a camera at r_cam tracking points with anchors
