@@ -1,13 +1,18 @@
-"""Rotation NEES of what vo_node publishes over DDS: the demo bag played into a fresh node.
+"""Rotation NEES of what vo_node publishes over DDS: a bag played into a fresh node.
 
-`ekf-vo-play` (the player's Python API) plays the demo bag's compressed images and
-CameraInfo in real time into vo_node (`queue_policy: all`: nothing dropped), every
+`ekf-vo-play` (the player's Python API) plays a bag's images and CameraInfo in real time
+into vo_node (`queue_policy: all`: nothing dropped), every
 nav_msgs/Odometry is recorded, brought back from odom/base_link to the camera's optical
 frame with the node's extrinsic (docs/ros.md: T_world_cam = T_base_cam^-1 T_odom_base
 T_base_cam, rotation covariance R_bc^T Sigma R_bc), and compared with the bag's ground
 truth as bench.rotation_nees does.
 
-    python -m bench.dds_nees [--json OUT]
+Sequences: ``demo`` = the bundled demo bag (JPEG CompressedImage, 640x480, 30 Hz);
+``kitti`` = KITTI 06 frames 0-50 from ../shared/data through ekf-vo-convert (raw mono8,
+1226x370, 10 Hz), its rotation NEES from frame 12 on, where its ground truth is
+reliable (docs/method.md §14.4), as bench.rotation_nees's ``kitti_raw_from12``.
+
+    python -m bench.dds_nees [--sequence demo|kitti] [--json OUT]
 """
 from __future__ import annotations
 
@@ -20,7 +25,10 @@ import numpy as np
 
 from .common import machine, write_json
 
-IMAGE, INFO = '/camera/image_raw/compressed', '/camera/camera_info'
+INFO = '/camera/camera_info'
+#: sequence -> (image topic played, image_transport of the node)
+SEQUENCES = {'demo': ('/camera/image_raw/compressed', 'compressed'),
+             'kitti': ('/camera/image_raw', 'raw')}
 
 
 def record_odometry(bag: Path, node_args: list[str], topics: list[str], work: Path,
@@ -47,12 +55,31 @@ def record_odometry(bag: Path, node_args: list[str], topics: list[str], work: Pa
     return list(odom)
 
 
-def _record(bag: Path, work: Path) -> list:
+def _record(bag: Path, sequence: str, work: Path) -> list:
     from ekf_vo.ros.harness import domain_id_for
+    image, transport = SEQUENCES[sequence]
     return record_odometry(bag, [
-        '-p', 'image_transport:=compressed', '-r', 'image:=/camera/image_raw',
+        '-p', f'image_transport:={transport}', '-r', 'image:=/camera/image_raw',
         '-r', 'camera_info:=' + INFO, '-r', 'odom:=/odom', '-p', 'queue_policy:=all'],
-        [IMAGE, INFO], work, domain_id_for(__name__))
+        [image, INFO], work, domain_id_for(__name__))
+
+
+def _bag(sequence: str, work: Path) -> tuple[Path, float] | str:
+    """(the bag to play, the stamp [s] from which the NEES is counted), or why the
+    sequence is unavailable."""
+    if sequence == 'demo':
+        from ekf_vo.tools.demo import demo_bag
+        return demo_bag(), -np.inf
+    from ekf_vo.io.dataset import load_folder
+    from ekf_vo.tools.convert import convert
+    from .common import shared_data
+    from .rotation_nees import KITTI_GT_RELIABLE_FROM
+    folder = shared_data('kitti06_f0-50')
+    if folder is None:
+        return 'kitti skipped: ../shared/data/kitti06_f0-50 is absent'
+    bag = work / 'kitti06_raw'
+    convert('kitti', folder, bag, jpeg_quality=None, info_after_image=False)
+    return bag, load_folder(folder).stamps_ns[KITTI_GT_RELIABLE_FROM] * 1e-9 - 1e-6
 
 
 def camera_poses(msgs: list, T_bc: np.ndarray | None = None
@@ -84,26 +111,34 @@ def camera_poses(msgs: list, T_bc: np.ndarray | None = None
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    p.add_argument('--sequence', choices=sorted(SEQUENCES), default='demo')
     p.add_argument('--json', type=Path)
     args = p.parse_args(argv)
     from ekf_vo.io.bag import read_ground_truth
     from ekf_vo.tools.consistency import rotation_nees
-    from ekf_vo.tools.demo import demo_bag
-    bag = demo_bag()
     with tempfile.TemporaryDirectory() as tmp:
-        msgs = _record(bag, Path(tmp))
+        found = _bag(args.sequence, Path(tmp))
+        if isinstance(found, str):
+            print(f'bench.dds_nees: {found}')
+            return 0
+        bag, from_s = found
+        msgs = _record(bag, args.sequence, Path(tmp))
+        gt_ns, gt_T = read_ground_truth(bag)
     if len(msgs) < 3:
         print(f'bench.dds_nees: only {len(msgs)} odometry messages', file=sys.stderr)
         return 1
     stamps, poses, covs = camera_poses(msgs)
-    gt_ns, gt_T = read_ground_truth(bag)
-    rn = rotation_nees(np.asarray(gt_ns) * 1e-9, gt_T, stamps, poses, stamps, covs, 1e-3)
-    print(f'# rotation NEES of vo_node over DDS, demo bag ({machine()})')
+    keep = stamps >= from_s
+    rn = rotation_nees(np.asarray(gt_ns) * 1e-9, gt_T, stamps[keep], poses[keep],
+                       stamps[keep], covs[keep], 1e-3)
+    counted = '' if args.sequence == 'demo' else ', NEES from frame 12'
+    print(f'# rotation NEES of vo_node over DDS, {args.sequence}{counted} ({machine()})')
     print(f'odometry messages {len(msgs)}; rotation NEES mean {rn.mean:.2f}, median '
           f'{rn.median:.2f}, {rn.pct_above_999:.1f} % above 16.27; max rotation error '
           f'{np.max(rn.err_deg):.2f} deg')
     if args.json:
-        write_json(args.json, {'machine': machine(), 'n_odometry': len(msgs), **rn.to_dict(),
+        write_json(args.json, {'machine': machine(), 'sequence': args.sequence,
+                               'n_odometry': len(msgs), **rn.to_dict(),
                                'rot_err_max_deg': float(np.max(rn.err_deg))})
     return 0
 

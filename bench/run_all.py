@@ -371,7 +371,7 @@ def _bunny_nees(b: dict, c: dict | None) -> str:
         '**What the filter was told here**: the true pixel noise, the exact map points and '
         'a ground-truth start: the consistency of the filter itself, not of the product '
         'on images (the full pipeline\'s, bench.pipeline_nees, in the map\'s own gauge: '
-        '1.6-20 over the rendered walk and orbit, docs/method.md §12.7).\n\n',
+        'docs/method.md §12.7 and pipeline_nees.json).\n\n',
         _table(['runs', 'runs x frames', 'mean NEES', 'median', '95 % band (per frame)',
                 'frames in band'], rows),
         f"\n\nFor reference, EPnP's Gauss-Newton covariance gives a mean NEES of "

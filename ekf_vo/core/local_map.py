@@ -316,15 +316,17 @@ class LocalMapper:
         of the pose relative to the fixed keyframes, at the window's own pixel noise
         where that is above the nominal (_variance_factor). Its anchor so far, the
         filter's published covariance when it became a keyframe, bounds it too: the
-        adjusted pose is at least as good as the filter's. The smaller bound (by the
+        adjusted pose is at least as good as the filter's (the window starts from it
+        and keeps what earlier windows said as a prior). The smaller bound (by the
         rotation's variance) is kept, and becomes the anchor of the points a later
         window adjusts relative to this keyframe (docs/method.md §14.2).
 
         Before, that anchor was always the filter's: each keyframe handed on the
         filter's error at the moment it was made, inflated by the health checks, and
         KITTI 06's published rotation was over-cautious (NEES median 0.47, §15.4).
-        Always the adjustment's was worse on the orbit and the demo, where the filter
-        knew the keyframe better than a window of six keyframes does."""
+        Always the window's was worse on the orbit and the demo: its marginal, from
+        six keyframes' observations alone, is looser there than what the filter knew
+        from every frame and its motion model."""
         if sol.T_cov is None or gauge.anchor is None:
             return
         factor = _variance_factor(sol.err_after_px, self.cfg.pixel_sigma_px)
