@@ -405,12 +405,16 @@ class VisualOdometry(Initialisation, LossHandling):
         kfs = self.local_map.keyframes
         if not c.rotation_check or len(kfs) < 2:
             return
-        a, b = kfs[-2], kfs[-1]
+        # the pair from the last keyframe, or the second look at a doubtful pair from
+        # that pair's first keyframe (rotation_check.KeyframeRotationJudge.judge)
+        longer = self._rotation_job.wants_second_look and len(kfs) >= 3
+        a, b = kfs[-3] if longer else kfs[-2], kfs[-1]
         # in a worker thread; its verdict is taken before the next frame's (_take_check)
         self._rotation_job.submit(
             self.camera.K, a.ids, a.px, a.T_world_cam_filter, b.ids, b.px,
             b.T_world_cam_filter, c.bootstrap_ransac_px, c.rotation_check_min_parallax_deg,
-            H_OVER_E_RATIO, self.ekf.pose_covariance()[3:, 3:], seed=self.frame_index)
+            H_OVER_E_RATIO, self.ekf.pose_covariance()[3:, 3:], seed=self.frame_index,
+            longer=longer)
 
     def _take_check(self) -> None:
         """The last keyframe's rotation check (_check_rotation), before anything it

@@ -285,6 +285,11 @@ class DeferredCheck:
             self._pool = None
 
 
+#: a failed keyframe pair with less median parallax [deg] is not counted until a wider
+#: pair, from its first keyframe to the next one, is judged (KeyframeRotationJudge.judge)
+SECOND_LOOK_PARALLAX_DEG = 1.5
+
+
 class KeyframeRotationJudge:
     """The keyframes' rotation check (in its worker, DeferredCheck) and what it
     concludes. A pair beyond `max_nees` adds its discrepancy d d^T to the published
@@ -304,13 +309,24 @@ class KeyframeRotationJudge:
         self._total = (np.zeros(3), np.zeros((3, 3)), 0)
         self._normal: np.ndarray | None = None  #: the last judged pair's plane (world)
         self.last: RotationCheck | None = None     #: the last pair's check
+        #: a failed pair with little parallax, waiting for a second look (judge)
+        self._doubtful: RotationCheck | None = None
+        self._longer = False            #: the submitted check is the second look
         #: why this map no longer holds the camera (a drift beyond lost_deg), or ''
         self.map_lost = ''
 
-    def submit(self, *args: Any, **kwargs: Any) -> None:
+    def submit(self, *args: Any, longer: bool = False, **kwargs: Any) -> None:
         """check_rotation(*args, **kwargs) in the worker, with the plane of the last
-        ambiguous pair."""
+        ambiguous pair. `longer`: the pair is the second look at a doubtful one (from
+        its first keyframe to the newest)."""
+        self._longer = bool(longer) and self._doubtful is not None
         self._job.submit(*args, plane_normal_world=self._normal, **kwargs)
+
+    @property
+    def wants_second_look(self) -> bool:
+        """The last pair failed with little parallax: judge the next one from that
+        pair's first keyframe instead (judge)."""
+        return self._doubtful is not None
 
     @property
     def pending(self) -> bool:
@@ -318,6 +334,8 @@ class KeyframeRotationJudge:
 
     def reset(self) -> None:
         """A new map: its drift starts from nothing."""
+        self._doubtful = None
+        self._longer = False
         self._pairs.clear()
         self._total = (np.zeros(3), np.zeros((3, 3)), 0)
         self._normal = None
@@ -328,15 +346,40 @@ class KeyframeRotationJudge:
 
     def take(self, world_cov) -> str:
         """The submitted check's verdict (judge)."""
-        return self.judge(self._job.take(), world_cov)
+        longer, self._longer = self._longer, False
+        return self.judge(self._job.take(), world_cov, longer)
 
-    def judge(self, check: RotationCheck | None, world_cov) -> str:
+    def judge(self, check: RotationCheck | None, world_cov, longer: bool = False) -> str:
         """One keyframe pair's check: its evidence, and the drift's, added to
         `world_cov` (map_uncertainty.WorldCovariance); the reason to be DEGRADED, or
-        ''."""
+        ''.
+
+        A pair that fails with less than SECOND_LOOK_PARALLAX_DEG of parallax is not
+        counted yet: the next check spans it and the next keyframe (`longer`), and that
+        wider pair is judged in its place. With little parallax the two views can be
+        wrong by more than their covariance says (a homography's plane at 0.5-0.8 deg:
+        0.7-1.2 deg off, docs/method.md §15.4). When the wider pair cannot be judged,
+        the doubtful one counts as it was."""
+        reasons = []
+        if longer:
+            doubtful, self._doubtful = self._doubtful, None
+            if check is None:
+                check = doubtful
+        else:
+            if self._doubtful is not None:      # no wider look came: it counts as it was
+                earlier, self._doubtful = self._doubtful, None
+                reasons.append(self._count(earlier, world_cov))
+            if (check is not None and check.nees > self.max_nees
+                    and check.parallax_deg < SECOND_LOOK_PARALLAX_DEG):
+                self.last, self._doubtful = check, check
+                return '; '.join(r for r in reasons if r)
         self.last = check
-        if check is None:
-            return ''
+        if check is not None:
+            reasons.append(self._count(check, world_cov))
+        return '; '.join(r for r in reasons if r)
+
+    def _count(self, check: RotationCheck, world_cov) -> str:
+        """A judged pair's evidence and the drift's (judge)."""
         if check.plane_normal_world is not None:
             self._normal = check.plane_normal_world
         reasons = []
