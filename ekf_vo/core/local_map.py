@@ -345,8 +345,8 @@ class LocalMapper:
             kf.anchor = (bound, c)
 
 
-#: median of a chi-square with 2 dof: |e|^2 / sigma^2 of a pixel residual
-_CHI2_2DOF_MEDIAN = 1.3863
+#: median of a chi-square with 2 dof (2 ln 2): |e|^2 / sigma^2 of a pixel residual
+_CHI2_2DOF_MEDIAN = 2.0 * np.log(2.0)
 
 
 def _variance_factor(err_px: np.ndarray, sigma_px: float) -> float:
