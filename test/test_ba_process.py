@@ -3,6 +3,8 @@ handed back, and a thread when the process is gone (docs/method.md §17.9)."""
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
 
 import pytest
@@ -47,6 +49,21 @@ def test_the_worker_ends_with_its_parent(fresh_worker) -> None:
     proc = ba_process._worker._proc
     proc.stdin.close()              # what the parent's exit does
     assert proc.wait(timeout=30) == 0
+
+
+def test_a_parent_that_leaves_during_a_job_leaves_no_traceback() -> None:
+    """A run that ends while an adjustment is in flight (ekf-vo-run at the end of a bag,
+    a node shut down): the worker finds its answer's pipe closed. Before, it printed a
+    BrokenPipeError traceback on the user's terminal after the run had ended."""
+    script = ('import time\n'
+              'from ekf_vo.core import ba_process\n'
+              'ba_process.submit(time.sleep, 1.0)\n'
+              'time.sleep(0.3)\n')      # the worker has the job; the parent leaves now
+    # stderr is read to its end, which the worker holds too: its last words are in it
+    run = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True,
+                         timeout=60, env=dict(os.environ))
+    assert run.returncode == 0, run.stderr
+    assert 'Traceback' not in run.stderr and 'Error' not in run.stderr, run.stderr
 
 
 def test_the_estimator_goes_on_when_the_worker_dies(fresh_worker) -> None:

@@ -11,8 +11,9 @@ local map, so the ~0.3 s a new interpreter takes to import numpy is not a frame'
 stdout: not `multiprocessing`, whose `spawn` and `forkserver` import the user's main module
 again in the worker (a script without an `if __name__ == '__main__'` guard ran twice), and
 whose `fork` is unsafe in a process with threads, as a ROS node is. The worker ignores
-Ctrl-C (its parent decides) and ends when its stdin closes, i.e. with its parent. When it
-cannot be started or has died, adjustments run in a thread, and the log says so once.
+Ctrl-C (its parent decides) and ends when its stdin closes, i.e. with its parent, or
+quietly when its parent has gone while a job ran. When it cannot be started or has died,
+adjustments run in a thread, and the log says so once.
 """
 from __future__ import annotations
 
@@ -154,7 +155,14 @@ def _serve() -> None:
             answer = (job, True, fn(*args))
         except Exception as exc:  # noqa: BLE001 - handed to the caller's future
             answer = (job, False, exc)
-        _write(stdout, answer)
+        try:
+            _write(stdout, answer)
+        except (BrokenPipeError, ValueError, OSError):
+            # the parent ended while this job ran (a run that stops during an
+            # adjustment): nobody waits for the answer. Leave quietly, with the pipe
+            # pointed at /dev/null so that the flush at exit raises nothing either
+            os.dup2(os.open(os.devnull, os.O_WRONLY), stdout.fileno())
+            return
 
 
 if __name__ == '__main__':
