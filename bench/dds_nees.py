@@ -131,7 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     keep = stamps >= from_s
     rn = rotation_nees(np.asarray(gt_ns) * 1e-9, gt_T, stamps[keep], poses[keep],
                        stamps[keep], covs[keep], 1e-3)
-    counted = '' if args.sequence == 'demo' else ', NEES from frame 12'
+    from .rotation_nees import KITTI_GT_RELIABLE_FROM
+    counted = '' if args.sequence == 'demo' else \
+        f', NEES from frame {KITTI_GT_RELIABLE_FROM}'
     print(f'# rotation NEES of vo_node over DDS, {args.sequence}{counted} ({machine()})')
     print(f'odometry messages {len(msgs)}; rotation NEES mean {rn.mean:.2f}, median '
           f'{rn.median:.2f}, {rn.pct_above_999:.1f} % above 16.27; max rotation error '
