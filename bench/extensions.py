@@ -48,7 +48,8 @@ def run_frames(frames: list, camera: PinholeCamera, cfg: VoConfig, gt_s: np.ndar
     """One pipeline run over (stamp_ns, gray) frames; metrics against the ground truth.
 
     known_T: per-frame GT poses handed to the pipeline while it initialises (the paper's
-    GT bootstrap), or None for the monocular bootstrap."""
+    GT bootstrap; the pipeline reads them for its first map only), or None for the
+    monocular bootstrap."""
     stream = VoStream(cfg, seed=seed)
     stream.set_camera(camera)
     vo = stream.vo      # the estimator behind the front door, for its internals

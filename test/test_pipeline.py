@@ -100,6 +100,29 @@ def test_lost_on_black_frames_then_rebootstraps_in_the_same_odom_frame(sequence)
     assert jump < 40 * step, f'odom jumped {jump:.3f} (median step {step:.4f})'
 
 
+def test_ground_truth_is_read_for_the_first_map_only(sequence):
+    """The papers' ground-truth bootstrap fixes the first map; after a loss the pipeline
+    bootstraps again from its images, as it would live (docs/method.md §9.4): ground
+    truth handed again would favour the estimator that loses track more often."""
+    camera, frames = sequence
+    black = np.zeros_like(frames[0][1])
+    far = np.eye(4)
+    far[:3, 3] = [100.0, 0.0, 0.0]      # a "known" pose no image supports
+    vo = VisualOdometry(VoConfig(relocalise=False), camera)
+    results = []
+    for k, (stamp, img, T) in enumerate(frames):
+        known = T if k < 60 else far @ T
+        results.append(vo.process(black if 60 <= k < 66 else img, stamp, known))
+    first = next(r for r in results if r.ok)
+    k_first = results.index(first)
+    # the first map is the ground truth's: its pose is the true one
+    assert np.allclose(first.T_world_cam[:3, 3], frames[k_first][2][:3, 3], atol=0.05)
+    assert vo.n_resets == 1 and vo.n_maps == 2
+    back = next(k for k in range(66, len(results)) if results[k].ok)
+    # the second map is attached where the camera was, not at the pose handed in
+    assert np.linalg.norm(results[back].T_world_cam[:3, 3] - frames[back][2][:3, 3]) < 5.0
+
+
 def test_bad_frames_are_skipped_without_losing_the_track(sequence):
     """The stream (the core's front door) rejects a repeated stamp, a slightly older one
     and a wrong-size image, counts them, and the track goes on."""

@@ -376,6 +376,7 @@ class Initialisation:
         self._inflation = 1.0
         self.world_cov.last = (self._published_cov, T_world_cur[:3, 3].copy())
         self.state = TrackingState.TRACKING
+        self.n_maps += 1
         self._failed_frames = 0
         self._remember_published_state(res.stamp_ns)
         for f, _, _, T in sources:

@@ -103,6 +103,7 @@ class VisualOdometry(Initialisation, LossHandling):
         self.estimator = make_estimator(cfg, self.ekf, self.points)
         self.frame_index = -1
         self.n_resets = 0
+        self.n_maps = 0                        # bootstraps that started tracking
         self._anchor_T_world_cam = np.eye(4)   # where a new map is attached
         self._anchor_speed = None              # m/s carried over a re-bootstrap
         # the orientation before a map (docs/method.md §15.9); its own random stream, so
@@ -168,8 +169,10 @@ class VisualOdometry(Initialisation, LossHandling):
         (int nanoseconds, increasing): stream.VoStream checks both before calling.
 
         `known_T_world_cam` is only for the papers' ground-truth bootstrap (docs/method.md §2.3:
-        "the first two ground-truth poses fix the scale"); the pipeline never reads it
-        once tracking.
+        "the first two ground-truth poses fix the scale"); the pipeline reads it only until
+        its first map. After a loss it relocalises or bootstraps again from the images,
+        as it would live: ground truth handed again would favour whichever method loses
+        track more often (§9.4).
 
         `on_pose`: called with the frame's result as soon as its pose, covariance, twist,
         ok and health are final — in a tracked frame before the map work (growth,
@@ -183,6 +186,8 @@ class VisualOdometry(Initialisation, LossHandling):
             self._lose(f'gap of {(stamp_ns - self._last_stamp_ns) * 1e-9:.2f} s',
                        self._last_stamp_ns)
         self.frame_index += 1
+        if self.n_maps:
+            known_T_world_cam = None
         if self.state == TrackingState.TRACKING:
             result = self._track(gray, stamp_ns, on_pose)
         elif self.state == TrackingState.LOST:

@@ -26,7 +26,9 @@ What it does, per image message of the bag (in log-time order):
    trajectory starts at the identity again, as a restarted node would).
 4. ``VisualOdometry.process`` runs on each image; with ``--gt-bootstrap`` the ground-truth
    pose at the image stamp is passed as ``known_T_world_cam`` while the pipeline state is
-   ``initialising`` (the EKFPnP paper's protocol: ground truth fixes the bootstrap scale).
+   ``initialising``; the pipeline reads it for its first map only (the EKFPnP paper's
+   protocol: ground truth fixes the bootstrap scale; after a loss it bootstraps from the
+   images).
 5. output: ``T_world_cam`` of the camera optical frame of the frames with ``result.ok`` (the
    online trajectory a node would publish; in metres with a scale source) as TUM text; per-frame statistics as CSV; a
    summary (frames, % tracked, frames/s, mean per-stage ms) and, when the bag has ground
@@ -134,7 +136,7 @@ def run_bag(bag: str | Path,
         image_topic, info_topic, gt_topic: override the automatic topic choice.
         limit: feed at most this many images to the core.
         gt_bootstrap: pass the ground truth at the image stamp as ``known_T_world_cam``
-            while the state is ``initialising``.
+            while the state is ``initialising`` (read for the first map only).
         out_tum: write the trajectory (ok frames) here, TUM format.
         out_cov: write each of those poses' 6x6 covariance here (io.trajectory.
             write_covariances: the stamp and 36 numbers per line).
@@ -452,7 +454,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--limit', type=int, default=None, metavar='N',
                    help='process at most N images')
     p.add_argument('--gt-bootstrap', action='store_true',
-                   help='give the ground-truth pose to the bootstrap (papers\' protocol)')
+                   help='give the ground-truth pose to the first bootstrap (papers\' protocol)')
     p.add_argument('--max-time-diff', type=float, default=0.01, metavar='S',
                    help='stamp association tolerance for the evaluation [s]')
     p.add_argument('--seed', type=int, default=0, help='RNG seed of the core')
