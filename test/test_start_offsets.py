@@ -1,0 +1,26 @@
+"""bench.start_offsets: every estimator on the same demo frames from several start frames
+(docs/method.md §9.4). Guards that the comparison runs and means what it says; the
+figures themselves are the benchmark's."""
+import math
+
+from .support.benchmarks import benchmark_json, run_benchmark
+
+
+def test_each_estimator_runs_from_each_start_frame(tmp_path):
+    res = benchmark_json('start_offsets', tmp_path / 'offsets.json', '--offsets', '2',
+                         '--estimators', 'ekf', 'epnp')
+    assert set(res['runs']) == {'ekf', 'epnp'}
+    for est, runs in res['runs'].items():
+        assert [r['start'] for r in runs] == [0, 1]
+        for r in runs:
+            # the demo's 300 frames less the start and the bootstrap's few
+            assert r['published'] > 250, (est, r)
+            assert all(math.isfinite(r[k]) and r[k] > 0 for k in
+                       ('ate_sim3_rmse', 'rpe_trans_rmse', 'rot_err_max_deg')), (est, r)
+            assert r['ate_sim3_rmse'] < 0.1, (est, r)   # metres; the demo's path is 5.6 m
+
+
+def test_a_bad_override_is_one_line_and_exit_2(tmp_path):
+    proc = run_benchmark('start_offsets', '--set', 'no_such_parameter=1')
+    assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1 and 'Traceback' not in proc.stderr
