@@ -58,6 +58,10 @@ def main(argv: list[str] | None = None) -> int:
     overrides = overrides_or_report(args.set, 'bench.start_offsets')
     if overrides is None:
         return 2
+    if 'estimator' in overrides:      # --estimators chooses; a --set would be overridden
+        print('bench.start_offsets: choose the estimator with --estimators, not --set',
+              file=sys.stderr)
+        return 2
     from ekf_vo.io.bag import read_ground_truth
     from ekf_vo.tools.demo import demo_bag, load_demo_frames
     info, frames = load_demo_frames()

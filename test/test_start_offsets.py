@@ -20,7 +20,9 @@ def test_each_estimator_runs_from_each_start_frame(tmp_path):
             assert r['ate_sim3_rmse'] < 0.1, (est, r)   # metres; the demo's path is 5.6 m
 
 
-def test_a_bad_override_is_one_line_and_exit_2(tmp_path):
-    proc = run_benchmark('start_offsets', '--set', 'no_such_parameter=1')
-    assert proc.returncode == 2
-    assert len(proc.stderr.strip().splitlines()) == 1 and 'Traceback' not in proc.stderr
+def test_a_bad_override_is_one_line_and_exit_2():
+    for bad in ('no_such_parameter=1', 'estimator=iekf'):   # the latter: --estimators'
+        proc = run_benchmark('start_offsets', '--set', bad)
+        assert proc.returncode == 2, bad
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert 'Traceback' not in proc.stderr
