@@ -5,7 +5,7 @@ One run of the demo bag is one draw: a setting one frame away moves its ATE by u
 estimator is run on the same images from each of the first `--offsets` frames (the
 bootstrap then takes a different pair, which issue 14 asks not to matter) and compared
 on the distribution: ATE after Sim(3) (m), RPE per frame (m) and the largest rotation
-error (deg).
+error (deg); and, pair by pair, at how many starts each estimator's ATE is the lower.
 
     python -m bench.start_offsets [--estimators ekf epnp] [--offsets 8] [--seed 0]
                                   [--set NAME=VALUE ...] [--json OUT]
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import sys
 from pathlib import Path
 
@@ -80,9 +81,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f'| {est} | {ate.mean():.4f} | {np.median(ate):.4f} | {ate.max():.4f} | '
               f"{np.mean([r['rpe_trans_rmse'] for r in runs]):.4f} | "
               f"{max(r['rot_err_max_deg'] for r in runs):.2f} |", flush=True)
+    pairs = paired_lower_ate(out['runs'])
+    if pairs:
+        out['paired_lower_ate'] = pairs
+        print('start by start (the same images), lower ATE: ' + '; '.join(
+            f'{pair} {n[0]} : {n[1]}' for pair, n in pairs.items()) + f' of {args.offsets}')
     if args.json:
         write_json(args.json, out)
     return 0
+
+
+def paired_lower_ate(runs: dict[str, list[dict]]) -> dict[str, list[int]]:
+    """For each pair of estimators 'a vs b': at how many start frames a's ATE is lower
+    than b's, and b's than a's (a tie counts for neither). The means alone hide whether
+    one estimator wins most starts or a few by much."""
+    ate = {est: np.array([r['ate_sim3_rmse'] for r in rs]) for est, rs in runs.items()}
+    return {f'{a} vs {b}': [int(np.sum(ate[a] < ate[b])), int(np.sum(ate[b] < ate[a]))]
+            for a, b in itertools.combinations(runs, 2)}
 
 
 if __name__ == '__main__':

@@ -18,6 +18,11 @@ def test_each_estimator_runs_from_each_start_frame(tmp_path):
             assert all(math.isfinite(r[k]) and r[k] > 0 for k in
                        ('ate_sim3_rmse', 'rpe_trans_rmse', 'rot_err_max_deg')), (est, r)
             assert r['ate_sim3_rmse'] < 0.1, (est, r)   # metres; the demo's path is 5.6 m
+    # the paired view: at how many starts each one's ATE is the lower, as its ATEs say
+    ekf, epnp = res['runs']['ekf'], res['runs']['epnp']
+    assert res['paired_lower_ate'] == {'ekf vs epnp': [
+        sum(a['ate_sim3_rmse'] < b['ate_sim3_rmse'] for a, b in zip(ekf, epnp)),
+        sum(b['ate_sim3_rmse'] < a['ate_sim3_rmse'] for a, b in zip(ekf, epnp))]}
 
 
 def test_a_bad_override_is_one_line_and_exit_2():
