@@ -3,6 +3,8 @@
 figures themselves are the benchmark's."""
 import math
 
+from bench.start_offsets import paired_lower_ate
+
 from .support.benchmarks import benchmark_json, run_benchmark
 
 
@@ -31,3 +33,13 @@ def test_a_bad_override_is_one_line_and_exit_2():
         assert proc.returncode == 2, bad
         assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
         assert 'Traceback' not in proc.stderr
+
+
+def test_paired_counts_leave_ties_to_neither():
+    def runs(*ates):
+        return [{'ate_sim3_rmse': a} for a in ates]
+    pairs = paired_lower_ate({'ekf': runs(1.0, 2.0, 3.0, 4.0),
+                              'epnp': runs(2.0, 1.0, 3.0, 5.0),
+                              'iekf': runs(0.5, 0.5, 0.5, 9.0)})
+    assert pairs == {'ekf vs epnp': [2, 1],      # start 2 is a tie
+                     'ekf vs iekf': [1, 3], 'epnp vs iekf': [1, 3]}
