@@ -321,6 +321,13 @@ class VoConfig(_Params):
     triangulation_max_reproj_px: float = param(
         2.0, 'Reject a triangulated point whose reprojection error is larger.', 'px', 0.1,
         50.0, group='map')
+    triangulation_depth_debias: bool = param(
+        False, 'Move each new point towards its first camera by its depth\'s second-order '
+        'bias, var(depth) / depth, at the pixel noise its neighbours\' triangulation '
+        'residuals show: a depth from a small parallax is too long on average, and a map '
+        'whose every new point is too long grows its scale (docs/method.md §7.2.1). Off by '
+        'default: it lowers a forward-driving car\'s scale drift (KITTI 06) but made the '
+        'rendered ground robot worse on 4 of 5 seeds.', group='map')
     max_map_points: int = param(5000, 'Bound on the map size; oldest unseen culled first.',
                                 'count', 50, 1000000, group='map')
     cull_after_misses: int = param(

@@ -4,8 +4,8 @@ import pytest
 
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.local_ba import point_covariances
-from ekf_vo.core.triangulation import (TriangulationResult, triangulate_points,
-                                       triangulate_points_from)
+from ekf_vo.core.triangulation import (TriangulationResult, depth_debiased,
+                                       triangulate_points, triangulate_points_from)
 
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
 
@@ -69,3 +69,57 @@ def test_mismatched_inputs_are_refused():
     empty = triangulate_points_from([], np.zeros(0, int), now, np.zeros((0, 2)),
                                     np.zeros((0, 2)), K, 2.0, 1.0)
     assert empty.X_world.shape == (0, 3) and empty.valid.shape == (0,)
+
+
+def _small_parallax_draws(sigma_px, n=4000, seed=3):
+    """n noisy two-view observations of points 10 m ahead seen across a 0.25 m baseline
+    (about 1.4 deg of parallax, a just-born map point), sigma_px Gaussian pixel noise."""
+    rng = np.random.default_rng(seed)
+    X = np.column_stack((rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n), np.full(n, 10.0)))
+    T1, T2 = _pose([0, 0, 0], [0, 0, 0]), _pose([0, 0, 0], [0.25, 0, 0])
+    clean = lambda T: (X @ T[:3, :3].T + T[:3, 3])[:, :2] / 10.0 * K[0, 0] + K[:2, 2]
+    px1 = clean(T1) + rng.normal(0, sigma_px, (n, 2))
+    px2 = clean(T2) + rng.normal(0, sigma_px, (n, 2))
+    return X, T1, T2, px1, px2
+
+
+def test_summed_squared_residual_measures_the_pixel_noise():
+    """Four coordinates fit by three unknowns: the two views' summed squared residual is
+    sigma^2 times a chi-square of one dof, so its mean is the pixel variance (map growth's
+    noise estimate for the depth correction, docs/method.md §7.2.1)."""
+    for sigma in (0.3, 1.0):
+        X, T1, T2, px1, px2 = _small_parallax_draws(sigma)
+        tri = triangulate_points(T1, T2, px1, px2, K, 50.0, 0.0)
+        assert tri.valid.all()
+        assert np.mean(tri.sq_err_sum_px2) == pytest.approx(sigma ** 2, rel=0.08)
+
+
+def test_depth_debiased_removes_the_small_parallax_depth_bias():
+    """A depth from a small parallax is too long on average (E[b / (theta + e)] > b /
+    theta); moved back by var(depth) / depth along its ray, the mean depth is right to
+    within its standard error, and the uncorrected one is not."""
+    sigma = 1.0
+    X, T1, T2, px1, px2 = _small_parallax_draws(sigma, n=20000)
+    tri = triangulate_points(T1, T2, px1, px2, K, 50.0, 0.0)
+    keep = tri.valid & (tri.depth1 < 40.0)        # the gated map drops the far-off tail
+    cov = point_covariances(tri.X_world[keep], [T1, T2], K, sigma)
+    fixed = depth_debiased(tri.X_world[keep], np.zeros(3), cov)
+    raw_err = tri.X_world[keep, 2] / X[keep, 2] - 1.0
+    fixed_err = fixed[:, 2] / X[keep, 2] - 1.0
+    stderr = fixed_err.std() / np.sqrt(keep.sum())
+    assert raw_err.mean() > 5 * stderr                 # the bias is real and positive
+    assert abs(fixed_err.mean()) < 3 * stderr
+    assert abs(fixed_err.mean()) < 0.3 * raw_err.mean()
+
+
+def test_depth_debiased_leaves_a_sharp_point_and_caps_a_vague_one():
+    """The shift is var(depth) / depth: nothing for an exact point, never more than the
+    cap for a hopeless one, and a NaN covariance moves nothing."""
+    X = np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0], [0.0, 1.0, 5.0]])
+    cov = np.zeros((3, 3, 3))
+    cov[1] = np.eye(3) * 1e6
+    cov[2] = np.nan
+    out = depth_debiased(X, np.zeros(3), cov, max_rel_shift=0.25)
+    np.testing.assert_array_equal(out[0], X[0])
+    np.testing.assert_allclose(np.linalg.norm(out[1]), 0.75 * np.linalg.norm(X[1]))
+    np.testing.assert_array_equal(out[2], X[2])

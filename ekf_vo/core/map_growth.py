@@ -10,6 +10,8 @@ never reused, so ended tracks are simply forgotten.
 """
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from ..config import VoConfig
@@ -17,7 +19,11 @@ from . import geometry as geo
 from .camera import PinholeCamera
 from .local_ba import point_covariances
 from .map import LandmarkMap
-from .triangulation import triangulate_points_from
+from .triangulation import depth_debiased, triangulate_points_from
+
+#: new points whose triangulation residuals make the pixel-noise estimate of the depth
+#: correction (docs/method.md §7.2.1): a few frames' worth on a car, a second on a slow camera
+NOISE_WINDOW_POINTS = 500
 
 
 class MapGrowth:
@@ -26,6 +32,9 @@ class MapGrowth:
     def __init__(self, cfg: VoConfig, camera: PinholeCamera) -> None:
         self.cfg = cfg
         self.camera = camera
+        #: (sum of squared residuals, count) of recent new points, newest last; a
+        #: property of the camera and its images, so kept across map resets
+        self._residuals: deque[tuple[float, int]] = deque()
         self.reset()
 
     def reset(self) -> None:
@@ -156,10 +165,16 @@ class MapGrowth:
             T_cam_world_then, first, T_cam_world_now, px_then, px[cand_rows[rows]],
             self.camera.K, c.triangulation_max_reproj_px, c.triangulation_min_parallax_deg)
         good = tri.valid
-        cov = point_covariances(tri.X_world[good],
-                                [np.stack(T_cam_world_then)[first[good]], T_cam_world_now],
-                                self.camera.K, c.pixel_sigma_px)
-        landmarks.add(sel_ids[good], tri.X_world[good], frame_index, cov=cov, anchor=anchor)
+        X_new = tri.X_world[good]
+        T_then = np.stack(T_cam_world_then)[first[good]]
+        cov = point_covariances(X_new, [T_then, T_cam_world_now], self.camera.K,
+                                c.pixel_sigma_px)
+        if c.triangulation_depth_debias and len(X_new):
+            self._note_residuals(tri.sq_err_sum_px2[good])
+            ratio = self.pixel_noise_px() ** 2 / c.pixel_sigma_px ** 2
+            centre = -np.einsum('nji,nj->ni', T_then[:, :3, :3], T_then[:, :3, 3])
+            X_new = depth_debiased(X_new, centre, cov * ratio)
+        landmarks.add(sel_ids[good], X_new, frame_index, cov=cov, anchor=anchor)
         for tid in sel_ids[good].tolist():
             self.drop(tid)
         # a track that fails with a wide baseline is unreliable: stop trying
@@ -168,3 +183,25 @@ class MapGrowth:
             self.drop(tid)
             self.banned.add(tid)
         return int(np.count_nonzero(good))
+
+    def _note_residuals(self, sq_err_sum_px2: np.ndarray) -> None:
+        """Add new points' summed squared two-view residuals to the noise window."""
+        e = np.asarray(sq_err_sum_px2, float)
+        e = e[np.isfinite(e)]
+        if len(e) == 0:
+            return
+        self._residuals.append((float(e.sum()), len(e)))
+        n = sum(k for _, k in self._residuals)
+        while len(self._residuals) > 1 and n - self._residuals[0][1] >= NOISE_WINDOW_POINTS:
+            n -= self._residuals.popleft()[1]
+
+    def pixel_noise_px(self) -> float:
+        """The tracks' pixel noise as the recent new points' residuals show it [px]:
+        each point fits four coordinates with three unknowns, so its summed squared
+        residual is sigma^2 chi-square(1), of mean sigma^2 (the residual across the
+        epipolar line stands for the one along it, which sets the depth). Before any
+        point: pixel_sigma_px."""
+        n = sum(k for _, k in self._residuals)
+        if n == 0:
+            return float(self.cfg.pixel_sigma_px)
+        return float(np.sqrt(sum(s for s, _ in self._residuals) / n))

@@ -61,6 +61,9 @@ class TriangulationResult:
             to the point (0 where undefined).
         depth1: (N,) float64, z of the point in camera 1.
         depth2: (N,) float64, z of the point in camera 2.
+        sq_err_sum_px2: (N,) float64, the two views' squared reprojection errors summed
+            (inf where a depth is not positive): four coordinates fit by three, so at the
+            least-squares point it is sigma^2 times a chi-square of 1 dof.
     """
 
     X_world: np.ndarray
@@ -69,6 +72,7 @@ class TriangulationResult:
     parallax_deg: np.ndarray
     depth1: np.ndarray
     depth2: np.ndarray
+    sq_err_sum_px2: np.ndarray
 
     @property
     def n_valid(self) -> int:
@@ -125,7 +129,7 @@ def triangulate_points(T_cam1_world: np.ndarray, T_cam2_world: np.ndarray,
     if n == 0:
         e = np.empty(0, np.float64)
         return TriangulationResult(np.empty((0, 3)), np.empty(0, bool), e, e.copy(),
-                                   e.copy(), e.copy())
+                                   e.copy(), e.copy(), e.copy())
 
     X, finite = _dlt(T1, T2, px1, px2, K)
     C1 = -T1[:3, :3].T @ T1[:3, 3]
@@ -199,9 +203,13 @@ def _checked(X: np.ndarray, finite: np.ndarray, proj1: tuple[np.ndarray, np.ndar
 
     # Reprojection error, the worse of the two views.
     with np.errstate(invalid='ignore'):
-        err = np.maximum(np.linalg.norm(px1_hat - px1, axis=1),
-                         np.linalg.norm(px2_hat - px2, axis=1))
-    err = np.where(in_front & np.isfinite(err), err, np.inf)
+        e1 = np.linalg.norm(px1_hat - px1, axis=1)
+        e2 = np.linalg.norm(px2_hat - px2, axis=1)
+        err = np.maximum(e1, e2)
+        sq_sum = e1 ** 2 + e2 ** 2
+    usable = in_front & np.isfinite(err)
+    err = np.where(usable, err, np.inf)
+    sq_sum = np.where(usable, sq_sum, np.inf)
 
     # Parallax: angle between the rays from the centres C = -R^T t to X.
     C2 = -T2[:3, :3].T @ T2[:3, 3]
@@ -216,4 +224,28 @@ def _checked(X: np.ndarray, finite: np.ndarray, proj1: tuple[np.ndarray, np.ndar
     valid = in_front & (err < max_reproj_px) & (parallax >= min_parallax_deg)
     logger.debug('triangulated %d/%d (finite %d, in front %d)', int(valid.sum()), n,
                  int(finite.sum()), int(in_front.sum()))
-    return TriangulationResult(X, valid, err, parallax, z1, z2)
+    return TriangulationResult(X, valid, err, parallax, z1, z2, sq_sum)
+
+
+def depth_debiased(X_world: np.ndarray, centre: np.ndarray, cov: np.ndarray,
+                   max_rel_shift: float = 0.25) -> np.ndarray:
+    """Points (n,3) moved towards the camera centre(s) `centre` ((3,) or (n,3)) they are
+    seen from by the second-order bias of a two-view depth (docs/method.md §7.2.1).
+
+    A depth triangulated from a parallax angle is d = b / theta; with the measured
+    angle theta + e, e ~ N(0, s^2), E[d_hat] = d (1 + s^2 / theta^2) + O(s^4), i.e. the
+    depth is too long on average by var(d) / d, where var(d) = u^T cov u is the point's
+    variance along its unit ray u. The inverse depth is unbiased; the depth is not, and a
+    map point's depth is what carries the scale to the next frame's translation (§7.2.1).
+    `cov` (n,3,3) is the point's covariance at the pixel noise the caller believes. The
+    shift is capped at `max_rel_shift` of the depth (a guard: a gated point's relative
+    depth spread is far below that)."""
+    X = np.asarray(X_world, float).reshape(-1, 3)
+    ray = X - np.asarray(centre, float)
+    d = np.linalg.norm(ray, axis=1)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        u = ray / d[:, None]
+        var_d = np.einsum('ni,nij,nj->n', u, np.asarray(cov, float), u)
+        rel = np.clip(var_d / d ** 2, 0.0, max_rel_shift)
+    rel = np.where(np.isfinite(rel), rel, 0.0)
+    return X - (rel * d)[:, None] * np.where(np.isfinite(u), u, 0.0)
