@@ -1,12 +1,16 @@
 """Map growth of the hybrid method: tracks without a point wait as candidates until their
 rays have enough parallax, then are triangulated with the filter's poses (docs/method.md
-§7.3).
+§7.1-7.2).
 
 A candidate remembers the frame of its first observation, its ideal pixel there and its
 world bearing. Each tracked frame, candidates whose bearing now differs by
 `triangulation_min_parallax_deg` are triangulated from that frame's pose and the current
 one; a track that fails with three times that parallax is banned (unreliable). Ids are
 never reused, so ended tracks are simply forgotten.
+
+With `triangulation_depth_debias`, each new point is moved towards its first camera by its
+depth's small-parallax bias, at the pixel noise the new points' residuals show
+(docs/method.md §7.2.1).
 """
 from __future__ import annotations
 
