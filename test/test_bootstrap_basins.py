@@ -77,7 +77,8 @@ def test_the_rendered_walk_after_standing_bootstraps_in_the_truths_basin() -> No
     pair's own points, polished from the true relative pose, give the same rotation.
 
     How far that minimum is from the truth depends on the tracks, and the tracks on the
-    CPU (OpenCV's vector code paths round differently): 0.19 deg where this was first
+    CPU (the same pinned packages; presumably OpenCV's vector code paths, which round
+    differently): 0.19 deg where this was first
     measured, 1.3 deg on an AMD EPYC without AVX-512 (pair 0-57, Sampson RMS 1.1 px:
     the tracks drifted while the camera stood), where the anchor's 0.2 deg makes that a
     NEES of 48 (docs/method.md §2.1.1). That the cost's minimum is where the filter
