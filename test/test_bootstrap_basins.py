@@ -78,10 +78,9 @@ def test_the_rendered_walk_after_standing_bootstraps_in_the_truths_basin() -> No
 
     How far that minimum is from the truth depends on the tracks, and the tracks on the
     CPU (the same pinned packages; presumably OpenCV's vector code paths, which round
-    differently): 0.19 deg where this was first
-    measured, 1.3 deg on an AMD EPYC without AVX-512 (pair 0-57, Sampson RMS 1.1 px:
-    the tracks drifted while the camera stood), where the anchor's 0.2 deg makes that a
-    NEES of 48 (docs/method.md §2.1.1). That the cost's minimum is where the filter
+    differently): 0.19 deg where this was first measured, 1.3 deg on an AMD EPYC without
+    AVX-512 (pair 0-57, Sampson RMS 1.1 px, where a render's tracks are good to 0.2-0.4),
+    where the anchor's 0.2 deg makes that a NEES of 48 (docs/method.md §2.1.1). That the cost's minimum is where the filter
     starts is what the basin search can promise; this test holds that."""
     cfg = SynthConfig(frames=60, seed=6, trajectory='walk')
     frames = list(render_sequence(cfg))
