@@ -105,12 +105,14 @@ class _TwiceAsFast:
 def _run_stream(camera: dict, frames, overrides: dict, seed: int):
     """Feed frames through VoStream; (stamps s, poses, covariances, ok per frame,
     resets, located per published pose, the rolling shutter's readout: the most applied
-    and the last estimate [ms], docs/method.md §15.17)."""
+    and the last estimate [ms], docs/method.md §15.17; the largest corners' drop of a
+    lens fall-off correction in force, §6.11)."""
     cfg = dataclasses.replace(VoConfig(), **overrides).validate()
     stream = VoStream(cfg, seed=seed)
     stream.set_camera(PinholeCamera.from_camera_info(camera))
     stamps, poses, covs, oks, located = [], [], [], [], []
-    readout = {'readout_applied_ms_max': 0.0, 'readout_estimate_ms': float('nan')}
+    readout = {'readout_applied_ms_max': 0.0, 'readout_estimate_ms': float('nan'),
+               'lens_falloff_drop_max': 0.0}
     for stamp_ns, gray, known in frames:
         res = stream.process(gray, stamp_ns,
                              known if stream.state.value == 'initialising' else None)
@@ -118,6 +120,8 @@ def _run_stream(camera: dict, frames, overrides: dict, seed: int):
                                                 res.readout_s * 1e3)
         if np.isfinite(res.readout_estimate_s):
             readout['readout_estimate_ms'] = res.readout_estimate_s * 1e3
+        readout['lens_falloff_drop_max'] = max(readout['lens_falloff_drop_max'],
+                                               res.lens_falloff_drop)
         oks.append(bool(res.ok))
         if oks[-1]:
             stamps.append(stamp_ns * 1e-9)
@@ -283,14 +287,15 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     print(f'# rotation NEES of the published covariance ({machine()})')
     print('| sequence | seed | first pose | tracked % after it | resets | ATE % path | '
-          'max rot err deg | NEES mean | median | % > 16.27 | readout ms applied / est |')
-    print('|---|---|---|---|---|---|---|---|---|---|---|')
+          'max rot err deg | NEES mean | median | % > 16.27 | readout ms applied / est | '
+          'fall-off % |')
+    print('|---|---|---|---|---|---|---|---|---|---|---|---|')
     for name in args.sequences:
         real = _synthetic_name(name) is None
         for seed in (args.seeds[:1] if real else args.seeds):
             if real and name != 'demo' and shared_data(
                     'middlebury_dino' if name == 'dino' else 'kitti06_f0-50') is None:
-                print(f'| {name} | - | skipped: ../shared/data absent | | | | | | | | |')
+                print(f'| {name} | - | skipped: ../shared/data absent | | | | | | | | | |')
                 continue
             r = run_one(name, seed, overrides)
             rows.append(r)
@@ -301,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['rot_nees_mean']:.1f} | {r['rot_nees_median']:.2f} | "
                   f"{r['rot_nees_pct_above_99_9']:.1f} | "
                   f"{r.get('readout_applied_ms_max', float('nan')):.1f} / "
-                  f"{r.get('readout_estimate_ms', float('nan')):.1f} |", flush=True)
+                  f"{r.get('readout_estimate_ms', float('nan')):.1f} | "
+                  f"{100 * r.get('lens_falloff_drop_max', float('nan')):.0f} |", flush=True)
     if args.json:
         write_json(args.json, {'machine': machine(), 'overrides': overrides, 'runs': rows})
     return 0

@@ -177,3 +177,18 @@ def test_a_camera_standing_still_learns_no_fall_off_and_keeps_its_tracks():
     assert tracker.falloff.applied_drop == 0.0
     assert tracker.falloff.n_samples == 0
     assert len(np.intersect1d(first, tracks.ids)) >= 0.95 * len(first)
+
+
+def test_a_wild_fit_neither_overflows_nor_is_put_in_force():
+    # the fit from a standing camera's samples once overflowed math.exp in the node
+    # (a traceback on the rendered drone standing first, seed 0); such a fit is no lens's
+    falloff = LensFalloff()
+    for coeffs in ((1e4, 0.0), (-1e4, 0.0), (3.0, -1e3)):
+        falloff.coeffs = np.array(coeffs)
+        for r in (0.0, 0.5, 1.0):
+            assert np.isfinite(falloff.brightness(r)) and falloff.brightness(r) > 0.0
+        assert np.isfinite(falloff.corner_drop)
+        falloff.n_samples, falloff.reach, falloff.reach_sigma = 10**6, 0.8, 1e-3
+        falloff._samples.extend([np.zeros((1, 4))] * MIN_FRAMES)
+        assert not falloff._decide()
+        assert falloff.applied_drop == 0.0

@@ -67,6 +67,11 @@ MIN_SAMPLES, MIN_FRAMES = 2000, 20
 APPLY_DROP, REACH_QUANTILE = 0.15, 0.9
 #: standard deviations of log V(reach) by which the fall-off must differ from none
 APPLY_SIGMAS = 6.0
+#: |log V(reach)| beyond which a fit is not a lens's (a fifth of the brightness, or five
+#: times it, where the tracks still reach: a wide-angle lens at full aperture loses about
+#: half in its far corners) and is never put in force; a fit from degenerate samples said
+#: 99.999 % (MIN_RADIAL_MOVE_PX)
+MAX_ABS_LOG_V = math.log(5.0)
 #: change of the brightness at any radius that updates the correction in force
 UPDATE_DROP = 0.02
 #: Huber's threshold, in robust standard deviations of the residuals, and the
@@ -106,7 +111,8 @@ class LensFalloff:
         """V(r): the brightness at r (over the half-diagonal) relative to the centre, of
         the current estimate or (`applied`) of the correction in force."""
         a, b = self.applied if applied else self.coeffs
-        return math.exp(a * r * r + b * r ** 4)
+        # bounded so that no fit, however wild, overflows or gives log(0)
+        return math.exp(min(max(a * r * r + b * r ** 4, -_LOG_V_BOUND), _LOG_V_BOUND))
 
     @property
     def n_pairs(self) -> int:
@@ -116,12 +122,12 @@ class LensFalloff:
     @property
     def corner_drop(self) -> float:
         """1 - V(1) of the current estimate: the corners' loss of brightness."""
-        return 1.0 - math.exp(float(self.coeffs.sum()))
+        return 1.0 - self.brightness(1.0)
 
     @property
     def applied_drop(self) -> float:
         """1 - V(1) of the correction in force (0 when none is)."""
-        return 1.0 - math.exp(float(self.applied.sum()))
+        return 1.0 - self.brightness(1.0, applied=True)
 
     def correct(self, gray: np.ndarray) -> np.ndarray:
         """`gray` (HxW uint8) with the fall-off in force divided out; `gray` itself when
@@ -207,6 +213,8 @@ class LensFalloff:
         # their standard deviations) on the rendered drone's seed 7, a lens without a
         # fall-off; the drone through a lens with one said 18 % at 11 of them
         log_v = math.log(self.brightness(self.reach))
+        if not abs(log_v) <= MAX_ABS_LOG_V:
+            return False
         if not in_force and (1.0 - math.exp(log_v) < APPLY_DROP
                              or -log_v < APPLY_SIGMAS * self.reach_sigma):
             return False
@@ -223,6 +231,9 @@ class LensFalloff:
         self._gain = np.exp(-(a * self._r2 + b * self._r2 ** 2)).astype(np.float32)
         return True
 
+
+#: |log V| at which brightness() is bounded (a factor of 5e8)
+_LOG_V_BOUND = 20.0
 
 #: radii, over the tracks' reach, at which the estimate and the correction in force are
 #: compared
