@@ -88,8 +88,9 @@ class VoConfig(_Params):
         True, 'Estimate the rolling shutter\'s readout while tracking, from the map '
         'points\' residuals after each update (the part no pose change explains that '
         'grows with the row\'s time and the image motion; docs/method.md §15.17), and '
-        'correct the pixels with it once it is significant. A global-shutter camera '
-        'keeps rolling_shutter_s. False: rolling_shutter_s only.', group='front end')
+        'correct the pixels with it once it is significant, after 60 tracked frames. A '
+        'global-shutter camera keeps rolling_shutter_s. False: rolling_shutter_s only.',
+        group='front end')
     rolling_shutter_max_s: float = param(
         0.05, 'The largest readout the estimate may apply (a webcam\'s is 10-33 ms).',
         's', 0.0, 1.0, group='front end')

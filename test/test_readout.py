@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from ekf_vo.core import geometry as geo
-from ekf_vo.core.readout import (MIN_APPLIED_S, ReadoutEstimate, correction_rate,
-                                 interaction_matrix)
+from ekf_vo.core.readout import (MIN_APPLIED_S, MIN_FRAMES_APPLIED, SIGNIFICANCE,
+                                 ReadoutEstimate, correction_rate, interaction_matrix)
 from ekf_vo.core.rolling_shutter import rotation_to_stamp_time, translation_to_stamp_time
 
 from .test_rolling_shutter import CAMERA, _project, _rolling_shutter_pixels
@@ -79,6 +79,13 @@ def test_a_rolling_shutter_is_found_and_applied_once_significant():
         T0, omega, v, X, seen = _frame(rng, 0.015)
         _observe(est, T0, omega, v, X, seen, est.applied_s)
     assert est.estimate_s == pytest.approx(0.015, abs=0.0015)
+    assert est.estimate_s > SIGNIFICANCE * est.sigma_s
+    # significant, but not yet applied: a young map's errors can look like a readout
+    assert est.applied_s == 0.0
+    for _ in range(MIN_FRAMES_APPLIED - 30):
+        T0, omega, v, X, seen = _frame(rng, 0.015)
+        _observe(est, T0, omega, v, X, seen, est.applied_s)
+    assert est.estimate_s == pytest.approx(0.015, abs=0.0015)
     assert est.applied_s == est.estimate_s
 
 
@@ -111,7 +118,7 @@ def test_switched_off_it_keeps_the_configured_readout():
 def test_the_estimate_applied_is_bounded():
     rng = np.random.default_rng(13)
     est = ReadoutEstimate(prior_s=0.0, max_s=0.01)
-    for _ in range(20):
+    for _ in range(MIN_FRAMES_APPLIED):
         T0, omega, v, X, seen = _frame(rng, 0.03)
         _observe(est, T0, omega, v, X, seen, est.applied_s)
     assert est.applied_s == 0.01

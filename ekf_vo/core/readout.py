@@ -22,8 +22,8 @@ gives tau_used + delta with that variance; the frames are fused with a fading me
 (`MEMORY_FRAMES`), so that errors common to many frames (the map's, KLT's) cannot make
 the estimate ever more certain, and its sigma is widened by the frames' scatter about
 it (the Birge ratio, `sigma_s`). The estimate is applied once it is significant
-(`SIGNIFICANCE` standard deviations above zero) and at least `MIN_APPLIED_S`; until then
-the user's `rolling_shutter_s` is. Applied, its uncertainty (at least
+(`SIGNIFICANCE` standard deviations above zero) and at least `MIN_APPLIED_S`, from
+`MIN_FRAMES_APPLIED` frames on; until then the user's `rolling_shutter_s` is. Applied, its uncertainty (at least
 `MIN_RELATIVE_SIGMA` of it) goes into the pixels' noise. A camera that does not turn or
 move gives frames of little weight, and the estimate stays where it was.
 """
@@ -45,6 +45,13 @@ SIGNIFICANCE = 4.0
 MIN_APPLIED_S = 0.002
 #: fewest map points for a frame to be used
 MIN_POINTS = 20
+#: frames used before an estimate may first be applied. The first frames after a
+#: bootstrap measure against a two-view map whose errors can look like a readout: on
+#: the rendered walk (a global shutter), seed 11, their estimates averaged 5.6 ms, and
+#: applied at frame 8, the 8.5 ms the pixels were then corrected with were taken into the
+#: new points, which kept confirming it; never applied, the frames' estimates fell to
+#: -1.7-3 ms within 40 frames (docs/method.md §15.17)
+MIN_FRAMES_APPLIED = 60
 #: a frame whose readout is this uncertain [s] is not used (no turn, no motion)
 MAX_FRAME_SIGMA_S = 0.05
 #: the uncertainty of an applied estimate is at least this share of it: under a steady
@@ -99,6 +106,7 @@ class ReadoutEstimate:
         self._weighted = 0.0      # sum of estimate / var, faded
         self._weighted_sq = 0.0   # sum of estimate^2 / var, faded
         self._count = 0.0         # frames, faded
+        self._frames = 0          # frames used, all told
 
     @property
     def estimate_s(self) -> float | None:
@@ -122,10 +130,10 @@ class ReadoutEstimate:
     @property
     def applied_s(self) -> float:
         """The readout the pixels are corrected with: the estimate once significant,
-        else the configured one."""
+        after MIN_FRAMES_APPLIED frames, else the configured one."""
         est = self.estimate_s
         if not self.enabled or est is None or est < MIN_APPLIED_S or \
-                est < SIGNIFICANCE * self.sigma_s:
+                est < SIGNIFICANCE * self.sigma_s or self._frames < MIN_FRAMES_APPLIED:
             return self.prior_s
         return min(est, self.max_s)
 
@@ -192,4 +200,5 @@ class ReadoutEstimate:
         self._weighted = fade * self._weighted + frame_estimate / var
         self._weighted_sq = fade * self._weighted_sq + frame_estimate ** 2 / var
         self._count = fade * self._count + 1.0
+        self._frames += 1
         return frame_estimate
