@@ -156,7 +156,6 @@ def test_an_orbit_through_a_vignetting_lens_keeps_its_orientation():
     assert err_off.max() > 4.0
 
 
-
 def test_a_camera_standing_still_learns_no_fall_off_and_keeps_its_tracks():
     # Tracks that stand still measure no fall-off, only KLT's jitter in the sensor noise
     # and their squares' one-pixel jumps. Fitted, those gave the rendered walk standing
@@ -180,8 +179,9 @@ def test_a_camera_standing_still_learns_no_fall_off_and_keeps_its_tracks():
 
 
 def test_a_wild_fit_neither_overflows_nor_is_put_in_force():
-    # the fit from a standing camera's samples once overflowed math.exp in the node
-    # (a traceback on the rendered drone standing first, seed 0); such a fit is no lens's
+    # the fit from a standing camera's samples once overflowed math.exp (an
+    # OverflowError that ended bench.rotation_nees on the rendered drone standing first,
+    # seed 0); such a fit is no lens's
     falloff = LensFalloff()
     for coeffs in ((1e4, 0.0), (-1e4, 0.0), (3.0, -1e3)):
         falloff.coeffs = np.array(coeffs)

@@ -23,9 +23,10 @@ gives tau_used + delta with that variance; the frames are fused with a fading me
 the estimate ever more certain, and its sigma is widened by the frames' scatter about
 it (the Birge ratio, `sigma_s`). The estimate is applied once it is significant
 (`SIGNIFICANCE` standard deviations above zero) and at least `MIN_APPLIED_S`, from
-`MIN_FRAMES_APPLIED` frames on; until then the user's `rolling_shutter_s` is. Applied, its uncertainty (at least
-`MIN_RELATIVE_SIGMA` of it) goes into the pixels' noise. A camera that does not turn or
-move gives frames of little weight, and the estimate stays where it was.
+`MIN_FRAMES_APPLIED` frames on; until then the user's `rolling_shutter_s` is. Applied,
+its uncertainty (at least `MIN_RELATIVE_SIGMA` of it) goes into the pixels' noise. A
+camera that does not turn or move gives frames of little weight, and the estimate stays
+where it was.
 """
 from __future__ import annotations
 
