@@ -104,24 +104,24 @@ class _TwiceAsFast:
 
 def _run_stream(camera: dict, frames, overrides: dict, seed: int):
     """Feed frames through VoStream; (stamps s, poses, covariances, ok per frame,
-    resets, located per published pose, the rolling shutter's readout: the most applied
-    and the last estimate [ms], docs/method.md §15.17; the largest corners' drop of a
-    lens fall-off correction in force, §6.11)."""
+    resets, located per published pose, the self-calibrations: the rolling shutter's
+    readout, the most applied and the last estimate [ms], docs/method.md §15.17, and the
+    largest corners' drop of a lens fall-off correction in force, §6.11)."""
     cfg = dataclasses.replace(VoConfig(), **overrides).validate()
     stream = VoStream(cfg, seed=seed)
     stream.set_camera(PinholeCamera.from_camera_info(camera))
     stamps, poses, covs, oks, located = [], [], [], [], []
-    readout = {'readout_applied_ms_max': 0.0, 'readout_estimate_ms': float('nan'),
-               'lens_falloff_drop_max': 0.0}
+    calibration = {'readout_applied_ms_max': 0.0, 'readout_estimate_ms': float('nan'),
+                   'lens_falloff_drop_max': 0.0}
     for stamp_ns, gray, known in frames:
         res = stream.process(gray, stamp_ns,
                              known if stream.state.value == 'initialising' else None)
-        readout['readout_applied_ms_max'] = max(readout['readout_applied_ms_max'],
-                                                res.readout_s * 1e3)
+        calibration['readout_applied_ms_max'] = max(calibration['readout_applied_ms_max'],
+                                                    res.readout_s * 1e3)
         if np.isfinite(res.readout_estimate_s):
-            readout['readout_estimate_ms'] = res.readout_estimate_s * 1e3
-        readout['lens_falloff_drop_max'] = max(readout['lens_falloff_drop_max'],
-                                               res.lens_falloff_drop)
+            calibration['readout_estimate_ms'] = res.readout_estimate_s * 1e3
+        calibration['lens_falloff_drop_max'] = max(calibration['lens_falloff_drop_max'],
+                                                   res.lens_falloff_drop)
         oks.append(bool(res.ok))
         if oks[-1]:
             stamps.append(stamp_ns * 1e-9)
@@ -131,7 +131,7 @@ def _run_stream(camera: dict, frames, overrides: dict, seed: int):
     if stream.vo is not None:
         stream.vo.close()
     return (np.array(stamps), np.array(poses), np.array(covs), oks, stream.n_resets,
-            np.array(located, bool), readout)
+            np.array(located, bool), calibration)
 
 
 #: the rendered sequences through other cameras (a name's suffix: SynthConfig fields);
@@ -241,13 +241,13 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
         if name.endswith('_from12'):
             step = 2 if base == 'kitti_2x' else 1
             start = data.stamps_ns[KITTI_GT_RELIABLE_FROM // step] * 1e-9
-    stamps, poses, covs, oks, resets, located, readout = out
+    stamps, poses, covs, oks, resets, located, calibration = out
     if len(stamps) < 3:
         return {'sequence': name, 'seed': seed, 'pct_tracked': 0.0, 'first_pose_frame': None,
                 'pct_tracked_after_first': 0.0, 'ate_pct_path': float('nan'),
                 'resets': resets, 'rot_err_max_deg': float('nan'), 'rot_nees_mean': float('nan'),
                 'rot_nees_median': float('nan'), 'rot_nees_pct_above_99_9': float('nan'),
-                'rot_nees_frames': 0, **readout}
+                'rot_nees_frames': 0, **calibration}
     # the ATE over the poses that have a position: orientation-only poses before a map
     # (docs/method.md §15.9) publish the attach point with an unknown position
     ate = float('nan')
@@ -265,7 +265,7 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
             if located.any() else None,
             'pct_tracked_after_first': 100.0 * sum(after) / max(len(after), 1),
             'ate_pct_path': ate, 'resets': resets,
-            'rot_err_max_deg': float(np.max(rn.err_deg)), **rn.to_dict(), **readout}
+            'rot_err_max_deg': float(np.max(rn.err_deg)), **rn.to_dict(), **calibration}
 
 
 def main(argv: list[str] | None = None) -> int:

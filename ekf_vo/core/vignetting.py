@@ -72,6 +72,8 @@ APPLY_SIGMAS = 6.0
 #: half in its far corners) and is never put in force; a fit from degenerate samples said
 #: 99.999 % (MIN_RADIAL_MOVE_PX)
 MAX_ABS_LOG_V = math.log(5.0)
+#: |log V| at which brightness() is bounded (a factor of 5e8)
+_LOG_V_BOUND = 20.0
 #: change of the brightness at any radius that updates the correction in force
 UPDATE_DROP = 0.02
 #: Huber's threshold, in robust standard deviations of the residuals, and the
@@ -231,9 +233,6 @@ class LensFalloff:
         self._gain = np.exp(-(a * self._r2 + b * self._r2 ** 2)).astype(np.float32)
         return True
 
-
-#: |log V| at which brightness() is bounded (a factor of 5e8)
-_LOG_V_BOUND = 20.0
 
 #: radii, over the tracks' reach, at which the estimate and the correction in force are
 #: compared
