@@ -386,6 +386,18 @@ class VoConfig(_Params):
         'keyframes; 1: all of it, which counts those observations twice, the price of not '
         'marginalising). It holds the scale of a window whose gauge keyframes are a short '
         'baseline apart (docs/method.md §12.2, §15.8).', '', 0.0, 1.0, group='local_map')
+    ba_pose_feedback: bool = param(
+        False, 'Feed an adjustment\'s pose of its newest keyframe back to the filter, as a '
+        'measurement of the current pose (the keyframe\'s correction carried along the '
+        'filter\'s motion since), when it disagrees with the filter beyond '
+        'ba_pose_feedback_min_nis: the filter has drifted from the map its window refined, '
+        'and its fresh points would carry the drift into the map. The mean moves; the '
+        'covariance stays, since the pose rests on pixels the filter has used '
+        '(docs/method.md §12.2).', group='local_map')
+    ba_pose_feedback_min_nis: float = param(
+        16.81, 'The NIS (6 dof) of the adjusted pose against the filter\'s own covariance '
+        'above which ba_pose_feedback corrects the filter (16.81: the chi-square 99 % '
+        'quantile; 0: every adjustment).', '', 0.0, 1e6, group='local_map')
     refind_map_points: bool = param(
         False, 'Search map points whose track has ended around their predicted pixel by '
         'ORB descriptor; a match becomes a measurement and a track again '

@@ -4,7 +4,8 @@ import pytest
 
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.ekf import (ANG, POS, QUAT, STATE_DIM, VEL, CameraEKF, motion_jacobians,
-                             motion_model, motion_rate, update)
+                             motion_model, motion_rate, pose_innovation, pose_update,
+                             update)
 from ekf_vo.core.observation import ReprojectionModel
 from ekf_vo.tools.synth_points import Sequence, project, run_ekf, smooth_orbit
 
@@ -131,6 +132,88 @@ def test_information_form_update_equals_textbook_kalman_update():
     x_text[QUAT] = q / n
     assert np.allclose(x_new, x_text, atol=1e-9)
     assert np.allclose(P_new, J @ P_text @ J.T, atol=1e-9)
+
+
+def _loose_filter(seed: int) -> CameraEKF:
+    """A filter whose pose is known to 0.1 (m, rad), with no variance along the
+    quaternion's norm (as the filter keeps it)."""
+    rng = np.random.default_rng(seed)
+    ekf = CameraEKF(K)
+    T = geo.make_T(geo.quat_to_matrix(rng.normal(size=4)), rng.normal(size=3))
+    ekf.initialise(T, rng.normal(size=3), 0.3 * rng.normal(size=3), 0.1, 0.2, 0.1)
+    return ekf
+
+
+def _moved(T: np.ndarray, dp: np.ndarray, dtheta: np.ndarray) -> np.ndarray:
+    """T moved by dp and turned by the world rotation vector dtheta."""
+    R = geo.quat_to_matrix(geo.rotvec_to_quat(dtheta)) @ T[:3, :3]
+    return geo.make_T(R, T[:3, 3] + dp)
+
+
+def test_pose_update_with_an_exact_measurement_lands_on_it():
+    """A pose measured far more precisely than the filter knows it becomes the state's
+    pose, a 5 deg turn included (the rotation is applied on the manifold)."""
+    ekf = _loose_filter(3)
+    T_meas = _moved(ekf.T_world_cam, np.array([0.2, -0.1, 0.05]),
+                    np.radians([3.0, -4.0, 0.0]))
+    x, P = pose_update(ekf.x, ekf.P, T_meas, np.eye(6) * 1e-12, keep_covariance=False)
+    assert np.allclose(x[POS], T_meas[:3, 3], atol=1e-6)
+    assert geo.rotation_angle_deg(geo.quat_to_matrix(x[QUAT]), T_meas[:3, :3]) < 0.05
+    # what the filter knew about the pose is now the measurement's
+    ekf.x, ekf.P = x, P
+    assert np.all(np.linalg.eigvalsh(ekf.pose_covariance()) < 1e-6)
+
+
+def test_pose_update_equals_the_textbook_kalman_update():
+    """For a small innovation the update is the textbook gain K = P H^T S^-1 with the
+    Joseph-form covariance; a measurement equal to the state changes nothing."""
+    ekf = _loose_filter(5)
+    cov = np.diag([0.02, 0.03, 0.01, 1e-3, 2e-3, 1e-3])
+    x0, P0 = ekf.x.copy(), ekf.P.copy()
+    x_same, P_same = pose_update(x0, P0, ekf.T_world_cam, cov, keep_covariance=True)
+    assert ekf.pose_nis(ekf.T_world_cam, cov) == pytest.approx(0.0, abs=1e-18)
+    assert np.allclose(x_same, x0) and np.allclose(P_same, P0, atol=1e-15)
+    y = np.array([1e-4, -2e-4, 1e-4, 1e-5, 2e-5, -1e-5])
+    T_meas = _moved(ekf.T_world_cam, y[:3], y[3:])
+    H = np.zeros((6, STATE_DIM))
+    H[0:3, POS] = np.eye(3)
+    H[3:6, QUAT] = 2.0 * geo.quat_right_matrix(x0[QUAT]).T[1:, :]
+    S = H @ P0 @ H.T + cov
+    K_text = P0 @ H.T @ np.linalg.inv(S)
+    x, P = pose_update(x0, P0, T_meas, cov, keep_covariance=False)
+    assert pose_innovation(x0, P0, T_meas, cov)[2] == pytest.approx(float(y @ np.linalg.solve(S, y)), rel=1e-3)
+    assert np.allclose(x[VEL], x0[VEL] + (K_text @ y)[VEL], atol=1e-9)
+    assert np.allclose(x[POS], x0[POS] + (K_text @ y)[POS], atol=1e-9)
+    I_KH = np.eye(STATE_DIM) - K_text @ H
+    P_text = I_KH @ P0 @ I_KH.T + K_text @ cov @ K_text.T
+    ekf.x, ekf.P = x, P
+    pose_after = ekf.pose_covariance()
+    ekf.P = P_text
+    assert np.allclose(pose_after, ekf.pose_covariance(), atol=1e-9)
+
+
+def test_pose_update_against_a_stated_prior_moves_by_its_share_and_the_velocity_follows():
+    """With the pose's prior stated (prior_pose_cov: the published covariance, which
+    counts the map's error that P leaves out), the pose moves by prior (prior + R)^-1 of
+    the innovation: half-way when the two are equal; the velocity follows by its
+    regression on the position in P, and P stays as it was."""
+    ekf = _loose_filter(9)
+    P = ekf.P.copy()
+    P[POS, POS] = np.eye(3) * 1e-4
+    P[VEL, VEL] = np.eye(3) * 4e-4
+    P[POS, VEL] = P[VEL, POS] = np.eye(3) * 1e-4        # velocity regresses 1:1 on position
+    ekf.P = P
+    dp = np.array([0.4, 0.0, -0.2])
+    T_meas = _moved(ekf.T_world_cam, dp, np.zeros(3))
+    cov = np.eye(6) * 0.5
+    x, P_new = pose_update(ekf.x, P, T_meas, cov, keep_covariance=True,
+                              prior_pose_cov=np.eye(6) * 0.5)
+    assert np.allclose(x[POS] - ekf.x[POS], dp / 2, atol=1e-9)
+    assert np.allclose(x[VEL] - ekf.x[VEL], dp / 2, atol=1e-9)
+    ekf.P = P
+    before = ekf.pose_covariance()
+    ekf.x, ekf.P = x, P_new
+    assert np.allclose(ekf.pose_covariance(), before, atol=1e-15)
 
 
 def test_covariance_stays_symmetric_positive_definite_over_long_run():

@@ -299,3 +299,30 @@ def test_an_adjusted_keyframe_keeps_the_smaller_of_its_two_anchors():
         assert np.trace(kfs[k].anchor[0][3:, 3:]) < 1e-3 * np.radians(10.0) ** 2
     assert kfs[5].anchor is tiny                      # smaller than the adjustment's
     assert kfs[0].anchor[0][0, 0] == np.radians(10.0) ** 2   # fixed keyframes keep theirs
+
+
+def test_an_adjustment_hands_the_filter_its_newest_keyframe_once():
+    """The newest keyframe the adjustment moved is handed on (LocalMapper.take_correction,
+    for ba_pose_feedback): the adjusted pose near the truth where the filter's was 8 cm
+    off, the filter's pose as it was, and a positive-definite covariance; once."""
+    from concurrent.futures import Future
+    from ekf_vo.core.local_map import _Pending
+    rng = np.random.default_rng(7)
+    mapper, landmarks = _mapper_after_a_turn(rng, n_blind=0)
+    kfs = mapper.keyframes
+    T_true = kfs[5].T_world_cam.copy()
+    T_off = T_true.copy()
+    T_off[:3, 3] += np.array([0.08, 0.0, 0.0])
+    kfs[5].T_world_cam, kfs[5].T_world_cam_filter = T_off.copy(), T_off.copy()
+    problem, point_ids, gauge = mapper._problem(landmarks)
+    sol = adjust_window(problem, K, 1.0, 2.0, 10)
+    future = Future()
+    future.set_result(sol)
+    mapper._pending = _Pending(future, 0, list(kfs), point_ids, gauge)
+    mapper.harvest(0, landmarks)
+    corr = mapper.take_correction()
+    assert corr.frame_index == 5
+    assert np.linalg.norm(corr.T_world_cam_adjusted[:3, 3] - T_true[:3, 3]) < 0.005
+    np.testing.assert_array_equal(corr.T_world_cam_filter, T_off)
+    assert np.all(np.linalg.eigvalsh(corr.cov_relative) > 0)
+    assert mapper.take_correction() is None

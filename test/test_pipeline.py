@@ -220,6 +220,28 @@ def test_the_local_map_adjusts_windows_deterministically(sequence):
     vo.local_map.close()
 
 
+def test_pose_feedback_moves_the_filter_and_keeps_tracking(sequence):
+    """ba_pose_feedback on with no gate (docs/method.md §12.2): each applied adjustment
+    hands the filter its newest keyframe's pose as a measurement, the filter takes it,
+    ~/status counts it, and the run still tracks with a finite, positive covariance."""
+    camera, frames = sequence
+    vo, results = run(camera, frames, local_map=True, ba_pose_feedback=True,
+                      ba_pose_feedback_min_nis=0.0)
+    stats = vo.local_map.stats
+    assert stats.n_runs >= 3 and stats.n_feedback >= 1
+    assert stats.feedback_last_m >= 0.0 and np.isfinite(stats.feedback_last_deg)
+    status = stats.as_status()
+    assert status['ba_feedbacks'] == stats.n_feedback
+    ev = ate_pct(frames, results)
+    assert ev.pct_tracked >= 90.0 and ev.ate_sim3_pct_of_path < 3.0
+    assert vo.n_resets == 0
+    for r in results:
+        if r.ok:
+            assert np.all(np.isfinite(r.pose_cov))
+            assert np.all(np.linalg.eigvalsh(r.pose_cov) > 0)
+    vo.local_map.close()
+
+
 def test_map_points_are_found_again_as_tracks(sequence):
     """refind_map_points on (docs/method.md §12.5): map points whose track ended are
     found again by descriptor and come back as tracks under their own ids, and the

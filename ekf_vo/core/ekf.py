@@ -36,7 +36,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = ['ANG', 'POS', 'POSE', 'QUAT', 'STATE_DIM', 'VEL', 'CameraEKF', 'FilterError',
            'UpdateStats', 'chi2_2dof_quantile', 'motion_jacobians', 'motion_model',
-           'update']
+           'pose_innovation', 'pose_update', 'update']
 
 
 class FilterError(RuntimeError):
@@ -201,6 +201,65 @@ def update(x: np.ndarray, P: np.ndarray, z_px: np.ndarray, model: ReprojectionMo
     return x_new, P_new, stats
 
 
+def pose_innovation(x: np.ndarray, P: np.ndarray, T_world_cam: np.ndarray,
+                    cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """A measured camera pose against the state: the innovation y (6,) =
+    (r_z - r, log(R_z R^T)) in (position, world rotation vector), the Jacobian H (6, D)
+    that maps the state to it (dtheta = 2 [0 I3] Rmat(q)^T dq, as in
+    `CameraEKF.pose_covariance`), and the NIS y^T (H P H^T + cov)^-1 y."""
+    H = np.zeros((6, len(x)))
+    H[0:3, POS] = np.eye(3)
+    H[3:6, QUAT] = 2.0 * geo.quat_right_matrix(x[QUAT]).T[1:, :]
+    R_now = geo.quat_to_matrix(x[QUAT])
+    y = np.concatenate((T_world_cam[:3, 3] - x[POS],
+                        geo.quat_to_rotvec(geo.matrix_to_quat(T_world_cam[:3, :3] @ R_now.T))))
+    S = H @ P @ H.T + cov
+    return y, H, float(y @ np.linalg.solve(0.5 * (S + S.T), y))
+
+
+def pose_update(x: np.ndarray, P: np.ndarray, T_world_cam: np.ndarray,
+                cov: np.ndarray, keep_covariance: bool,
+                prior_pose_cov: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """An EKF update with a measured camera pose `T_world_cam`, whose 6x6 covariance of
+    (position, world rotation vector) is `cov` (pose_innovation). Returns (x+, P+).
+
+    prior_pose_cov: the pose's prior covariance to weigh the measurement against, when
+    it is not the state's own H P H^T (the published covariance, which counts the map's
+    error that P leaves out, docs/method.md §14): the pose moves by
+    prior (prior + cov)^-1 y and the rest of the state follows by its regression on the
+    pose in P. keep_covariance: correct the mean only and leave P as it was, for a
+    measurement that shares errors with the state (the local map's keyframe poses rest
+    on pixels the filter has used: counting them again would make the filter confidently
+    wrong; docs/method.md §12.2)."""
+    y, H, _ = pose_innovation(x, P, T_world_cam, cov)
+    PHt = P @ H.T
+    HPH = H @ PHt
+    prior = HPH if prior_pose_cov is None else np.asarray(prior_pose_cov, float)
+    S = prior + cov
+    S_inv_y = np.linalg.solve(0.5 * (S + S.T), y)
+    if prior_pose_cov is None:
+        dx = PHt @ S_inv_y
+    else:
+        dx = PHt @ np.linalg.solve(0.5 * (HPH + HPH.T), prior @ S_inv_y)
+    x_new = x.copy()
+    x_new[:QUAT.start] += dx[:QUAT.start]
+    x_new[QUAT.stop:] += dx[QUAT.stop:]
+    # the rotation part as a rotation (exact for any size), not a sum of quaternions
+    dtheta = 2.0 * (geo.quat_right_matrix(x[QUAT]).T[1:, :] @ dx[QUAT])
+    x_new[QUAT] = geo.quat_multiply(geo.rotvec_to_quat(dtheta), x[QUAT])
+    if keep_covariance:
+        P_new = P
+    else:
+        K = np.linalg.solve(0.5 * (S + S.T), PHt.T).T
+        IKH = np.eye(len(x)) - K @ H
+        P_new = IKH @ P @ IKH.T + K @ cov @ K.T
+    x_new, P_new = normalise_quaternion(x_new, P_new)
+    if not np.all(np.isfinite(x_new)) or not np.all(np.isfinite(P_new)):
+        raise FilterError('state or covariance became non-finite in a pose update')
+    return x_new, P_new
+
+
 class CameraEKF:
     """13-state camera EKF. Attributes: x (13,), P (13,13), intrinsics (3,3)."""
 
@@ -291,6 +350,18 @@ class CameraEKF:
         self.x, self.P, self.last_update = update(self.x, self.P, z_px, model, sigma_px,
                                                   iterations)
         return self.last_update
+
+    def pose_nis(self, T_world_cam: np.ndarray, cov: np.ndarray) -> float:
+        """The NIS of a measured pose against this filter's own covariance
+        (pose_innovation)."""
+        return pose_innovation(self.x, self.P, T_world_cam, cov)[2]
+
+    def update_pose(self, T_world_cam: np.ndarray, cov: np.ndarray,
+                    keep_covariance: bool, prior_pose_cov: np.ndarray | None = None
+                    ) -> None:
+        """`pose_update` of this filter."""
+        self.x, self.P = pose_update(self.x, self.P, T_world_cam, cov, keep_covariance,
+                                     prior_pose_cov)
 
     # ------------------------------------------------------------------ outputs
     def pose_covariance(self) -> np.ndarray:

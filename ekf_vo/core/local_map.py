@@ -11,9 +11,11 @@ so the frame loop goes on; the result is applied before the update of the frame
 by then, so that the result never depends on timing (offline and live runs agree).
 
 What an adjustment changes: the map points' positions and covariances, the window's
-keyframe poses, and it culls points whose reprojection error stays large. It never
-writes the filter's state: the camera follows the refined map through the next
-measurements (the odometry stays continuous; docs/method.md §12.2).
+keyframe poses, and it culls points whose reprojection error stays large. It does not
+write the filter's state: the camera follows the refined map through the next
+measurements (the odometry stays continuous; docs/method.md §12.2), and with
+ba_pose_feedback the newest adjusted keyframe's pose is handed to the filter as a
+measurement (take_correction; pipeline.VisualOdometry._feed_back).
 """
 from __future__ import annotations
 
@@ -69,6 +71,12 @@ class AdjustmentStats:
     n_culled: int = 0
     n_keyframes: int = 0
     n_failed: int = 0             #: adjustments that raised (numerically): skipped
+    #: pose feedback (ba_pose_feedback): the last NIS against the filter, how many were
+    #: applied, and how far the last one moved the filter
+    feedback_last_nis: float = 0.0
+    n_feedback: int = 0
+    feedback_last_m: float = 0.0
+    feedback_last_deg: float = 0.0
 
     def as_status(self) -> dict:
         """The figures ~/status reports (times in ms, rounded)."""
@@ -77,7 +85,11 @@ class AdjustmentStats:
                 'ba_mean_ms': round(self.total_ms / self.n_runs, 1) if self.n_runs else 0.0,
                 'ba_wait_ms_total': round(self.wait_ms, 1), 'ba_frames_waited': self.n_waits,
                 'ba_last_points': self.last_points, 'ba_last_rms_px': round(self.last_rms_px, 2),
-                'ba_culled': self.n_culled, 'ba_failed': self.n_failed}
+                'ba_culled': self.n_culled, 'ba_failed': self.n_failed,
+                'ba_feedback_last_nis': round(self.feedback_last_nis, 1),
+                'ba_feedbacks': self.n_feedback,
+                'ba_feedback_last_m': round(self.feedback_last_m, 4),
+                'ba_feedback_last_deg': round(self.feedback_last_deg, 3)}
 
 
 @dataclass
@@ -99,11 +111,20 @@ class LocalMapper:
         self.stats = AdjustmentStats()
         self.keyframes: list[Keyframe] = []
         self._pending: _Pending | None = None
+        #: the last applied adjustment's word on its newest adjusted keyframe, for the
+        #: filter (take_correction); None: none since the last take
+        self._correction: PoseCorrection | None = None
 
     def reset(self) -> None:
         """Forget the keyframes; a running adjustment is left to finish and ignored."""
         self.keyframes = []
         self._pending = None
+        self._correction = None
+
+    def take_correction(self) -> 'PoseCorrection | None':
+        """The newest adjusted keyframe's pose from the last applied adjustment, once."""
+        corr, self._correction = self._correction, None
+        return corr
 
     def close(self, wait: bool = True) -> None:
         """Drop a running adjustment's result (it finishes on the shared worker; `wait`:
@@ -299,6 +320,7 @@ class LocalMapper:
         landmarks.refine(pend.point_ids[~bad], sol.X_world[~bad], sol.X_cov[~bad],
                          gauge.anchor)
         self._anchor_adjusted_keyframes(sol, pend.keyframes, gauge)
+        self._correction = self._newest_correction(sol, pend.keyframes)
         s = self.stats
         s.n_runs += 1
         s.last_ms = sol.elapsed_ms
@@ -343,6 +365,33 @@ class LocalMapper:
                 if np.trace(held[3:, 3:]) <= np.trace(bound[3:, 3:]):
                     continue
             kf.anchor = (bound, c)
+
+    def _newest_correction(self, sol: WindowSolution, keyframes: list
+                           ) -> 'PoseCorrection | None':
+        """The newest keyframe the adjustment moved: its adjusted pose, the filter's pose
+        when it became a keyframe, and the adjustment's covariance of the pose relative
+        to the window's fixed keyframes (at the window's own pixel noise). Relative, not
+        world: the fixed keyframes are the filter's own poses, so the difference between
+        the two poses carries none of their error (docs/method.md §12.2)."""
+        if sol.T_cov is None:
+            return None
+        factor = _variance_factor(sol.err_after_px, self.cfg.pixel_sigma_px)
+        for kf, T, C in zip(reversed(keyframes), sol.T_world_cam[::-1], sol.T_cov[::-1]):
+            if np.any(C) and kf.T_world_cam_filter is not None:
+                return PoseCorrection(kf.frame_index, np.array(T, float),
+                                      kf.T_world_cam_filter.copy(),
+                                      factor * adjusted_pose_covariance(T, C))
+        return None
+
+
+@dataclass
+class PoseCorrection:
+    """An adjustment's pose of a keyframe beside the filter's (LocalMapper.take_correction)."""
+
+    frame_index: int
+    T_world_cam_adjusted: np.ndarray   #: 4x4
+    T_world_cam_filter: np.ndarray     #: 4x4, the filter's when it became a keyframe
+    cov_relative: np.ndarray           #: 6x6 (position, world rotation vector)
 
 
 #: median of a chi-square with 2 dof (2 ln 2): |e|^2 / sigma^2 of a pixel residual

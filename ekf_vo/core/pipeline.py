@@ -38,10 +38,10 @@ from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
 from .health import Health, HealthMonitor, found_share
 from .initialisation import Initialisation
 from .loss import LossHandling
-from .local_map import LocalMapper
+from .local_map import LocalMapper, PoseCorrection
 from .map import LandmarkMap
 from .map_growth import MapGrowth
-from .map_uncertainty import WorldCovariance
+from .map_uncertainty import WorldCovariance, carry_pose_covariance
 from .multiview import MultiViewBootstrap
 from .noise_model import NoiseSettings, learn_from_update, map_measurement_sigmas
 from .orientation_only import OrientationChain
@@ -222,6 +222,9 @@ class VisualOdometry(Initialisation, LossHandling):
         if self.local_map is not None:
             culled = self.local_map.harvest(self.frame_index, self.map)
             self.growth.banned.update(int(i) for i in culled)
+            correction = self.local_map.take_correction()
+            if correction is not None and c.ba_pose_feedback:
+                self._feed_back(correction)
         timings['local_map'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -385,6 +388,33 @@ class VisualOdometry(Initialisation, LossHandling):
                 f'({res.n_inliers - res.n_rays} map points)')))
         res.variance_factor, res.found_share = report.variance_factor, report.found_share
         return False
+
+    def _feed_back(self, corr: PoseCorrection) -> None:
+        """The adjustment's pose of its newest keyframe, as a measurement of the current
+        pose: the filter's motion since that keyframe applied to the adjusted keyframe
+        (ba_pose_feedback, docs/method.md §12.2). Taken only when it disagrees with the
+        filter beyond the filter's own covariance (which holds the map exact): the filter
+        has drifted from the map its window refined, and its fresh points would carry
+        the drift into the map. Weighed against the published covariance (which counts
+        the map's error); the mean moves, the covariance stays."""
+        c = self.cfg
+        T_now = self.ekf.T_world_cam
+        T_meas = corr.T_world_cam_adjusted @ np.linalg.inv(corr.T_world_cam_filter) @ T_now
+        cov = carry_pose_covariance(corr.cov_relative[None], corr.T_world_cam_adjusted[:3, 3],
+                                    T_meas[:3, 3])[0] + np.eye(6) * MIN_VARIANCE
+        stats = self.local_map.stats
+        stats.feedback_last_nis = self.ekf.pose_nis(T_meas, cov)
+        if stats.feedback_last_nis < c.ba_pose_feedback_min_nis:
+            return
+        try:
+            self.ekf.update_pose(T_meas, cov, keep_covariance=True,
+                                 prior_pose_cov=self._published_cov)
+        except (FilterError, np.linalg.LinAlgError) as exc:
+            logger.warning('local map: pose feedback skipped (%s)', exc)
+            return
+        stats.n_feedback += 1
+        stats.feedback_last_m = float(np.linalg.norm(self.ekf.x[POS] - T_now[:3, 3]))
+        stats.feedback_last_deg = geo.rotation_angle_deg(self.ekf.R_world_cam, T_now[:3, :3])
 
     def _motion_model_lost(self, n_found: float, n_in_view: int) -> str:
         """Why this frame is a jolt the state cannot follow, or '' (docs/method.md
