@@ -66,3 +66,33 @@ def test_the_tracker_adopts_found_tracks_under_their_old_ids():
     assert set(lost_ids) <= set(nxt.ids)
     with pytest.raises(ValueError):
         tracker.adopt(nxt.ids[:1], nxt.px[:1])
+
+
+def test_corners_in_a_mask_are_those_of_the_whole_frame():
+    """Describer.corners searches only the mask's bounding box: on real images (the demo
+    bag), with masks of scattered search windows like find_again's, the corners and their
+    order are those of one Shi-Tomasi call over the whole frame with the same mask, also
+    when a window touches the image border."""
+    from ekf_vo.core import refind
+    from ekf_vo.tools.demo import load_demo_frames
+    _, frames = load_demo_frames()
+    d = Describer()
+    rng = np.random.default_rng(0)
+    compared = 0
+    for _, gray in frames[::60]:
+        h, w = gray.shape
+        for n_windows in (1, 5, 40):
+            mask = np.zeros((h, w), np.uint8)
+            centres = rng.uniform((0, 0), (w, h), (n_windows, 2)).astype(int)
+            centres[0] = (w - 3, 2)                       # one window at a corner
+            for (u, v), r in zip(centres.tolist(), rng.integers(4, 21, n_windows).tolist()):
+                cv2.circle(mask, (u, v), r, 255, -1)
+            whole = cv2.goodFeaturesToTrack(gray, 2000, refind._CORNER_QUALITY, 2.0,
+                                            mask=mask, blockSize=3)
+            whole = np.zeros((0, 2)) if whole is None else whole.reshape(-1, 2)
+            got = d.corners(gray, mask)
+            assert got.shape == whole.shape
+            np.testing.assert_array_equal(got, whole)
+            compared += len(got)
+    assert compared > 100
+    assert d.corners(frames[0][1], np.zeros(frames[0][1].shape, np.uint8)).shape == (0, 2)
