@@ -8,6 +8,11 @@ Per tracking frame of the full pipeline (images in, monocular bootstrap, no grou
   again: that is what re-finding points by descriptor (the local map) would recover.
   The pose is the EKF's after the update (the prior is not kept per frame); for points a
   frame sees, both put them in the image almost always alike.
+- twins: of the map points a track carries, the share with a twin, an untracked map
+  point in view that the pose puts within TWIN_PX of it in the image and within
+  TWIN_DEPTH_SHARE of its depth of it in 3D: most likely the same corner, triangulated
+  again after its track broke (issue 14's "two points found to be one are merged"; how
+  often it happens decides whether merging is worth building, docs/method.md §12.5).
 - map size, for context.
 Sequences: the demo bag (compressed 640x480, rendered room) and KITTI 06 frames 0-50 when
 the developers' data folder is present; each with the defaults and with the points
@@ -29,8 +34,29 @@ from ekf_vo.tools.demo import load_demo_frames
 from .common import section_main, shared_data
 
 
-def frame_usage(stream: VoStream, res) -> tuple[float, float, int] | None:
-    """(track share, found share, map points in view) of one ok frame, or None."""
+#: image distance [px] and 3D distance (share of the tracked point's depth) within which
+#: an untracked map point is counted as a tracked one's twin
+TWIN_PX = 3.0
+TWIN_DEPTH_SHARE = 0.10
+
+
+def twins(uv: np.ndarray, X: np.ndarray, depth: np.ndarray, tracked: np.ndarray
+          ) -> int:
+    """How many of the `tracked` (bool) points have a twin among the others: image
+    positions uv (n,2) within TWIN_PX, world positions X (n,3) within TWIN_DEPTH_SHARE of
+    the tracked point's depth (n,)."""
+    a, b = np.flatnonzero(tracked), np.flatnonzero(~tracked)
+    if len(a) == 0 or len(b) == 0:
+        return 0
+    near_px = np.linalg.norm(uv[a][:, None] - uv[b][None], axis=2) < TWIN_PX
+    near_3d = np.linalg.norm(X[a][:, None] - X[b][None], axis=2) \
+        < TWIN_DEPTH_SHARE * depth[a][:, None]
+    return int(np.count_nonzero((near_px & near_3d).any(axis=1)))
+
+
+def frame_usage(stream: VoStream, res) -> tuple[float, float, int, float] | None:
+    """(track share, found share, map points in view, share of the tracked ones with a
+    twin) of one ok frame, or None."""
     if not res.ok or res.track_has_point is None \
             or len(res.track_ids) == 0:
         return None
@@ -44,9 +70,14 @@ def frame_usage(stream: VoStream, res) -> tuple[float, float, int] | None:
     tracked = vo.map.contains(res.track_ids) & res.track_has_point
     tracked_ids = set(int(i) for i in res.track_ids[tracked])
     ids_in_view = vo.map.ids[in_image]
-    n_found = sum(1 for i in ids_in_view if int(i) in tracked_ids)
+    found = np.array([int(i) in tracked_ids for i in ids_in_view], bool)
+    n_found = int(np.count_nonzero(found))
+    R_wc, t_wc = vo.ekf.T_world_cam[:3, :3], vo.ekf.T_world_cam[:3, 3]
+    depth = (X[in_image] - t_wc) @ R_wc[:, 2]
+    n_twins = twins(px[in_image], X[in_image], depth, found)
     return (float(np.mean(res.track_has_point)),
-            n_found / n_view if n_view else float('nan'), n_view)
+            n_found / n_view if n_view else float('nan'), n_view,
+            n_twins / n_found if n_found else float('nan'))
 
 
 def run_sequence(frames, info, cfg: VoConfig) -> dict:
@@ -67,6 +98,8 @@ def run_sequence(frames, info, cfg: VoConfig) -> dict:
             'found_share_mean': float(np.nanmean(a[:, 1])),
             'found_share_median': float(np.nanmedian(a[:, 1])),
             'in_view_mean': float(np.mean(a[:, 2])),
+            'twin_share_mean': float(np.nanmean(a[:, 3])),
+            'twin_share_max': float(np.nanmax(a[:, 3])),
             'map_size_final': int(len(stream.vo.map))}
 
 
@@ -99,6 +132,8 @@ def summarize(res: dict) -> None:
               f'point {100 * r["track_share_mean"]:.0f} %; map points in view that are '
               f'measured {100 * r["found_share_mean"]:.0f} % (median '
               f'{100 * r["found_share_median"]:.0f} %) of {r["in_view_mean"]:.0f} in view; '
+              f'measured points with an untracked twin {100 * r["twin_share_mean"]:.1f} % '
+              f'(frame max {100 * r["twin_share_max"]:.1f} %); '
               f'map {r["map_size_final"]} points at the end')
 
 
