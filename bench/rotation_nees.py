@@ -10,7 +10,9 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
 - ``kitti_raw`` / ``kitti_jpeg``: KITTI 06 frames 0-50, raw or re-encoded as JPEG
   quality 75 (what image_transport's compressed publisher records).
   ``kitti_2x``: KITTI 06 at twice its speed (every other frame, at 10 Hz: 2.4 m a frame).
-  ``kitti_*_from12``: the same run evaluated from frame 12: KITTI 06's ground truth turns
+  ``kitti_reverse``: its frames backwards, at 10 Hz (the car reversing down the street).
+  ``kitti_*_from12``: the same run evaluated on the frames recorded from frame 12 on
+  (for ``kitti_reverse``, the first 39 it plays): KITTI 06's ground truth turns
   at an exactly constant rate over frames 0-11 (relative rotations equal to 1e-5 deg,
   unlike the rest of the sequence), which the images contradict (docs/method.md §14.4).
 - ``dino``: Middlebury dino, ground-truth bootstrap (the paper's protocol).
@@ -60,7 +62,8 @@ from .real_data import PRESETS
 #: robot's 760 frames are one loop of its rectangle, four turns in place
 SYNTHETIC = {'walk': 300, 'orbit': 300, 'ground_robot': 760, 'handheld_rotation': 300,
              'drone_nadir': 300, 'car': 180, 'car_turn': 200}
-SEQUENCES = ('kitti_raw', 'kitti_jpeg', 'kitti_2x', 'dino', 'demo') + tuple(SYNTHETIC)
+SEQUENCES = ('kitti_raw', 'kitti_jpeg', 'kitti_2x', 'kitti_reverse', 'dino', 'demo') + \
+    tuple(SYNTHETIC)
 REPO = Path(__file__).resolve().parents[1]
 #: first KITTI 06 frame whose ground-truth rotation is not the constant-rate segment
 KITTI_GT_RELIABLE_FROM = 12
@@ -75,8 +78,11 @@ def _folder_frames(name: str):
         return data, frames, PRESETS['middlebury_dino']
     data = load_folder(shared_data('kitti06_f0-50'))
     jpeg = name == 'kitti_jpeg'
+    n = len(data.stamps_ns)
     if name == 'kitti_2x':
-        data = _TwiceAsFast(data)
+        data = _Resequenced(data, np.arange(0, n, 2))
+    elif name == 'kitti_reverse':
+        data = _Resequenced(data, np.arange(n - 1, -1, -1))
 
     def frames():
         for t, g in data.frames():
@@ -84,22 +90,34 @@ def _folder_frames(name: str):
     return data, frames(), {}
 
 
-class _TwiceAsFast:
-    """KITTI 06 driven at twice its speed: every other frame, stamped at the camera's
-    10 Hz (2.4 m a frame, a highway's speed), with its ground truth retimed alike."""
+class _Resequenced:
+    """KITTI 06's frames in another order, `source_index` (indices of the recorded
+    frames), stamped at the camera's 10 Hz, with the ground truth reordered alike:
+    every other frame is the car at twice its speed (2.4 m a frame, a highway's speed),
+    the frames backwards are the car reversing down the street (the scene flows out of
+    the image from its middle instead of towards its edges)."""
 
-    def __init__(self, data) -> None:
+    def __init__(self, data, source_index: np.ndarray) -> None:
         self._data = data
         self.camera = data.camera
+        self.source_index = np.asarray(source_index, np.int64)
         t0, dt = data.stamps_ns[0], data.stamps_ns[1] - data.stamps_ns[0]
-        keep = np.arange(0, len(data.stamps_ns), 2)
-        self.stamps_ns = [int(t0 + k * dt) for k in range(len(keep))]
+        self.stamps_ns = [int(t0 + k * dt) for k in range(len(self.source_index))]
         self.gt_stamps_s = np.asarray(self.stamps_ns, float) * 1e-9
-        self.gt_T_world_cam = np.asarray(data.gt_T_world_cam)[keep]
+        self.gt_T_world_cam = np.asarray(data.gt_T_world_cam)[self.source_index]
 
     def frames(self):
-        for k, (_, g) in enumerate(list(self._data.frames())[::2]):
-            yield self.stamps_ns[k], g
+        recorded = list(self._data.frames())
+        for k, i in enumerate(self.source_index):
+            yield self.stamps_ns[k], recorded[i][1]
+
+
+def _gt_reliable_window_s(data) -> tuple[float, float]:
+    """First and last stamp [s] of the frames recorded from KITTI_GT_RELIABLE_FROM on
+    (for the ``_from12`` evaluation), in whatever order `data` plays them."""
+    source = getattr(data, 'source_index', np.arange(len(data.stamps_ns)))
+    t = np.asarray(data.stamps_ns, float)[source >= KITTI_GT_RELIABLE_FROM] * 1e-9
+    return float(t.min()), float(t.max())
 
 
 def _run_stream(camera: dict, frames, overrides: dict, seed: int):
@@ -220,7 +238,7 @@ def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
 
 def run_one(name: str, seed: int, overrides: dict) -> dict:
     """One sequence (and seed): tracking figures and the rotation NEES."""
-    start = 0.0
+    start, end = 0.0, np.inf
     base = name.removesuffix('_from12')
     if _synthetic_name(base) is not None:
         trajectory, speedup, still, fault, camera = _synthetic_name(base)
@@ -239,8 +257,7 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
         gt_s, gt_T = data.gt_stamps_s, data.gt_T_world_cam
         out = _run_stream(data.camera, frames, dict(preset, **overrides), seed)
         if name.endswith('_from12'):
-            step = 2 if base == 'kitti_2x' else 1
-            start = data.stamps_ns[KITTI_GT_RELIABLE_FROM // step] * 1e-9
+            start, end = _gt_reliable_window_s(data)
     stamps, poses, covs, oks, resets, located, calibration = out
     if len(stamps) < 3:
         return {'sequence': name, 'seed': seed, 'pct_tracked': 0.0, 'first_pose_frame': None,
@@ -256,7 +273,7 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
                        n_frames_total=len(oks)).ate_sim3_pct_of_path
     first = oks.index(True) if True in oks else len(oks)
     after = oks[first:]
-    keep = stamps >= start - 1e-6
+    keep = (stamps >= start - 1e-6) & (stamps <= end + 1e-6)
     rn = rotation_nees(gt_s, gt_T, stamps[keep], poses[keep], stamps[keep], covs[keep],
                        1e-3)
     return {'sequence': name, 'seed': seed, 'pct_tracked': 100.0 * sum(oks) / len(oks),

@@ -103,3 +103,29 @@ def test_the_bench_names_a_rendered_sequence_through_another_camera():
     assert bench._synthetic_name('orbit') == ('orbit', 1, 0, '', '')
     assert bench._synthetic_name('kitti_raw') is None
     assert bench._synthetic_name('orbit_fisheye_x2') is None   # suffixes in their order
+
+
+def test_kitti_backwards_plays_the_recorded_frames_in_reverse_at_ten_hertz():
+    """bench.rotation_nees' ``kitti_reverse``: frame k played is frame n-1-k recorded, with
+    its ground truth, stamped 0.1 s apart; its ``_from12`` window is the frames recorded
+    from frame 12 on, which it plays first."""
+    need_shared_data('kitti06_f0-50', 'the reversed KITTI sequence')
+    from bench import rotation_nees as bench
+    from ekf_vo.io.dataset import load_folder
+    from bench.common import shared_data
+    data = load_folder(shared_data('kitti06_f0-50'))
+    n = len(data.stamps_ns)
+    rev = bench._Resequenced(data, np.arange(n - 1, -1, -1))
+    np.testing.assert_allclose(np.diff(rev.stamps_ns), data.stamps_ns[1] - data.stamps_ns[0])
+    np.testing.assert_array_equal(rev.gt_T_world_cam[0], np.asarray(data.gt_T_world_cam)[-1])
+    recorded = [g for _, g in data.frames()]
+    played = [g for _, g in rev.frames()]
+    np.testing.assert_array_equal(played[0], recorded[-1])
+    np.testing.assert_array_equal(played[-1], recorded[0])
+    start, end = bench._gt_reliable_window_s(rev)
+    n_reliable = n - bench.KITTI_GT_RELIABLE_FROM
+    assert start == pytest.approx(rev.stamps_ns[0] * 1e-9)
+    assert end == pytest.approx(rev.stamps_ns[n_reliable - 1] * 1e-9)
+    # as recorded, the window is the frames from 12 to the end
+    assert bench._gt_reliable_window_s(data) == pytest.approx(
+        (data.stamps_ns[bench.KITTI_GT_RELIABLE_FROM] * 1e-9, data.stamps_ns[-1] * 1e-9))
