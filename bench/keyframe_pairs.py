@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections import deque
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -51,16 +50,17 @@ def recording():
     with (frame a, frame b, R_world_a, R_world_b, check or None, candidates), candidates
     being (R_ba, is a plane's) as check_rotation weighed them. The checks themselves are
     unchanged."""
-    records, pending, weighed = [], deque(), {}
+    records, weighed = [], {}
+    #: frame index of each recent keyframe, by its filter pose's array: check_rotation is
+    #: handed those arrays, so the pair it judges is found without repeating how the
+    #: pipeline chooses it
+    frame_of: dict[int, int] = {}
     check, closest = rotation_check.check_rotation, rotation_check._closest
     submit_check = pipeline.VisualOdometry._check_rotation
 
-    def noting_pair(vo) -> None:
-        kfs = vo.local_map.keyframes if vo.local_map is not None else []
-        if vo.cfg.rotation_check and len(kfs) >= 2:
-            longer = vo._rotation_job.wants_second_look and len(kfs) >= 3
-            pending.append(((kfs[-3] if longer else kfs[-2]).frame_index,
-                            kfs[-1].frame_index))
+    def noting_keyframes(vo) -> None:
+        for kf in (vo.local_map.keyframes if vo.local_map is not None else [])[-3:]:
+            frame_of[id(kf.T_world_cam_filter)] = kf.frame_index
         submit_check(vo)
 
     def weighing(candidates, *args):
@@ -70,13 +70,13 @@ def recording():
     def checking(K, ids_a, px_a, T_world_a, ids_b, px_b, T_world_b, *args, **kwargs):
         weighed['now'] = []
         out = check(K, ids_a, px_a, T_world_a, ids_b, px_b, T_world_b, *args, **kwargs)
-        a, b = pending.popleft()
-        records.append((a, b, T_world_a[:3, :3].copy(), T_world_b[:3, :3].copy(), out,
+        records.append((frame_of[id(T_world_a)], frame_of[id(T_world_b)],
+                        T_world_a[:3, :3].copy(), T_world_b[:3, :3].copy(), out,
                         weighed['now']))
         return out
 
     rotation_check.check_rotation, rotation_check._closest = checking, weighing
-    pipeline.VisualOdometry._check_rotation = noting_pair
+    pipeline.VisualOdometry._check_rotation = noting_keyframes
     try:
         yield records
     finally:

@@ -68,9 +68,7 @@ def frame_usage(stream: VoStream, res) -> tuple[float, float, int, float] | None
     in_image = front & vo.camera.in_image(vo.camera.distort(px))
     n_view = int(np.count_nonzero(in_image))
     tracked = vo.map.contains(res.track_ids) & res.track_has_point
-    tracked_ids = set(int(i) for i in res.track_ids[tracked])
-    ids_in_view = vo.map.ids[in_image]
-    found = np.array([int(i) in tracked_ids for i in ids_in_view], bool)
+    found = np.isin(vo.map.ids[in_image], res.track_ids[tracked])
     n_found = int(np.count_nonzero(found))
     R_wc, t_wc = vo.ekf.T_world_cam[:3, :3], vo.ekf.T_world_cam[:3, 3]
     depth = (X[in_image] - t_wc) @ R_wc[:, 2]
