@@ -20,7 +20,12 @@ inliers) is ambiguous: two solutions fit a plane, and on the rendered room's wal
 essential matrix's was degrees off while its covariance said hundredths. Such a pair is
 judged against each candidate (the essential matrix's rotation and those of the
 homography's decompositions with the points in front) and the filter is given the one
-it is closest to: the least the evidence says (docs/method.md §15.11).
+it is closest to: the least the evidence says (docs/method.md §15.11). A decomposition
+whose motion fits the shared tracks' epipolar geometry worse than the essential matrix's
+by more than chance is not a candidate: the homography explained most tracks, not the
+scene (§15.18). And the essential matrix is polished again from translations turned far
+from RANSAC's, as the bootstrap's is, since a narrow view leaves a second basin of the
+epipolar cost (§15.18).
 
 The discrepancies of consecutive pairs add up (`KeyframeRotationJudge`): a filter that
 is off by half a degree at every keyframe, each pair within its bound, is off by degrees
@@ -37,7 +42,9 @@ import cv2
 import numpy as np
 
 from . import geometry as geo
-from .bootstrap import homogeneous, sampson_of_fundamental
+from .bootstrap import (_BASIN_CHI2, _GATE_SCALE, _HUBER_SCALE, _MIN_SAMPSON_VAR_PX2,
+                        homogeneous, other_basin, refine_relative_pose,
+                        robust_sampson_cost, sampson_of_fundamental, sampson_px)
 from .map_uncertainty import relative_pose_covariance
 from .orientation_only import fit_rotation
 
@@ -49,6 +56,10 @@ _PURE_ROTATION_SHARE = 0.9
 #: a homography decomposition whose plane normal is within this of the last ambiguous
 #: pair's is that plane seen again (the filter's orientation carries it to the world)
 NORMAL_CONTINUITY_DEG = 15.0
+#: turns [rad] of the translation from which the essential matrix is polished again
+#: (bootstrap.other_basin, whose own 20 and 40 deg miss it): through a narrow lens the
+#: other basin lay 78-89 deg away (docs/method.md §15.18)
+_CHECK_TURNS = tuple(np.radians(d) for d in (40.0, -40.0, 80.0, -80.0))
 
 
 @dataclass(frozen=True)
@@ -80,8 +91,9 @@ def _normalised(K: np.ndarray, px: np.ndarray) -> np.ndarray:
 
 def _homography_candidates(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray,
                            sigma_px: float, min_parallax_deg: float
-                           ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """(R_ba, 3x3 rotation covariance in frame a, unit plane normal in frame a) of each
+                           ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """(R_ba, 3x3 rotation covariance in frame a, unit plane normal in frame a, t_ba over
+    the plane's distance) of each
     decomposition of H that keeps the points in front of both views (at most two: the
     planar ambiguity) and whose plane is seen with min_parallax_deg of median parallax. The covariance is the
     two-view one of that decomposition's own geometry (the plane's points at unit
@@ -108,8 +120,35 @@ def _homography_candidates(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.
         if _median_parallax_deg(X_a, T_a_b[:3, 3]) < min_parallax_deg:
             continue                  # no baseline: a rotation, judged by _pure_rotation
         out.append((R_ba, rays_cov + relative_pose_covariance(
-            K, np.eye(4), T_a_b, X_a, sigma_px)[3:, 3:], n / np.linalg.norm(n)))
+            K, np.eye(4), T_a_b, X_a, sigma_px)[3:, 3:], n / np.linalg.norm(n), t_ba))
     return out
+
+
+def _fits_as_well(R_plane: np.ndarray, t_plane: np.ndarray, R_e: np.ndarray,
+                  t_e: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray,
+                  threshold_px: float) -> bool:
+    """Whether a homography decomposition's motion (R, t over the plane's distance) fits
+    ALL the shared tracks' epipolar geometry about as well as the essential matrix's
+    (R_e, t_e): not worse by more than chance explains (twice the robust Sampson cost's
+    excess over the residuals' variance, chi-square 5 dof at 99.9 %, the bootstrap's
+    test between basins, docs/method.md §2.1.1).
+
+    Why (docs/method.md §15.18): a small baseline lets a homography explain most tracks
+    within a pixel when the scene is not a plane (a near panel before a far wall through
+    a 39 deg lens). Its decompositions then move the camera along the turn / sideways-step
+    ambiguity: 1.7 deg off the truth with a covariance of 0.02 deg, while the same tracks'
+    essential matrix was 0.00-0.03 deg off. On a plane every decomposition satisfies the
+    epipolar constraint of every track, so a true plane's candidates always pass."""
+    t_norm = float(np.linalg.norm(t_plane))
+    if t_norm < 1e-9:
+        return True                       # no baseline: the epipolar cost says nothing
+    gate, huber = _GATE_SCALE * threshold_px, _HUBER_SCALE * threshold_px
+    r_e = np.abs(sampson_px(R_e, t_e, pa, pb, K))
+    near = r_e < gate
+    var = max(float(np.mean(r_e[near] ** 2)) if near.any() else 0.0, _MIN_SAMPSON_VAR_PX2)
+    excess = robust_sampson_cost(R_plane, t_plane / t_norm, pa, pb, K, gate, huber) - \
+        robust_sampson_cost(R_e, t_e, pa, pb, K, gate, huber)
+    return 2.0 * excess / var < _BASIN_CHI2
 
 
 def _median_parallax_deg(X_a: np.ndarray, centre_b_in_a: np.ndarray) -> float:
@@ -179,9 +218,20 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
     E, mask = cv2.findEssentialMat(pa, pb, K, cv2.USAC_ACCURATE, 0.999, threshold_px)
     if E is None or E.shape != (3, 3) or mask is None:
         return None
-    _, R_ba, t_ba, mask, X_h = cv2.recoverPose(E, pa, pb, K, distanceThresh=1e6,
-                                               mask=mask.copy())
-    inl = mask.ravel() > 0
+    _, R_ba, t_ba, mask_e, X_h = cv2.recoverPose(E, pa, pb, K, distanceThresh=1e6,
+                                                 mask=mask.copy())
+    if np.count_nonzero(mask_e) >= MIN_POINTS:
+        # USAC's model may sit in the wrong basin of the epipolar cost (docs §15.18): look
+        # for a better one from translations turned far from it, as the bootstrap does
+        gate, huber = _GATE_SCALE * threshold_px, _HUBER_SCALE * threshold_px
+        R_p, t_p = refine_relative_pose(R_ba, t_ba.ravel(), pa, pb, K, gate, huber)
+        found = other_basin(R_p, t_p, pa, pb, K, gate, huber, turns=_CHECK_TURNS)
+        if found is not None:
+            near = (np.abs(sampson_px(*found, pa, pb, K)) < gate).astype(np.uint8) * 255
+            E = geo.skew(found[1]) @ found[0]
+            _, R_ba, t_ba, mask_e, X_h = cv2.recoverPose(E, pa, pb, K, distanceThresh=1e6,
+                                                         mask=near.reshape(-1, 1))
+    inl = mask_e.ravel() > 0
     if np.count_nonzero(inl) < MIN_POINTS:
         return None
     X_a = (X_h[:3] / X_h[3]).T[inl]                   # points in frame a, |t| = 1
@@ -207,8 +257,9 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
                                                           sigma)[3:, 3:], None))
     if ambiguous:
         h_in = h_mask.ravel() > 0
-        planes = [(R, cov, R_wa @ n) for R, cov, n in _homography_candidates(
-            H, K, pa[h_in], pb[h_in], sigma, min_parallax_deg)]
+        planes = [(R, cov, R_wa @ n) for R, cov, n, t in _homography_candidates(
+            H, K, pa[h_in], pb[h_in], sigma, min_parallax_deg)
+            if _fits_as_well(R, t, R_ba, t_ba.ravel(), K, pa, pb, threshold_px)]
         # |cos| of each plane's angle to the last pair's plane
         cos = [0.0 if plane_normal_world is None else abs(float(c[2] @ plane_normal_world))
                for c in planes]
