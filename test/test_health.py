@@ -262,67 +262,25 @@ def test_the_plane_seen_before_tells_the_twins_apart():
     assert seen.angle_deg == pytest.approx(geo.rotation_angle_deg(twin, R_ba_true), abs=0.2)
 
 
-def _wall_and_panel(rng, n=200, panel_share=0.15):
-    """Keyframes a and b (a forward-and-sideways move with a 5.7 deg yaw) seeing a far
-    wall (z = 6 m) and, before part of it, a near panel (z = 2.5 m): a homography explains
-    the wall's tracks, which are most of them, but the scene is not a plane."""
-    n_panel = int(n * panel_share)
-    X = np.vstack((
-        np.column_stack((rng.uniform(-3, 3, n - n_panel), rng.uniform(-2, 2, n - n_panel),
-                         np.full(n - n_panel, 6.0))),
-        np.column_stack((rng.uniform(-0.6, 0.2, n_panel), rng.uniform(-0.5, 0.5, n_panel),
-                         np.full(n_panel, 2.5)))))
-    Ta = np.eye(4)
-    Tb = geo.make_T(geo.rotvecs_to_matrices(np.array([[0.0, 0.1, 0.0]]))[0],
-                    np.array([0.5, 0.0, 0.45]))
+def test_a_pair_not_judged_is_spanned_by_the_next():
+    """A keyframe pair that cannot be judged (here: too few shared tracks) hands its
+    first keyframe back, so the next pair starts there and its drift is seen; a judged
+    pair does not, and a new map forgets it."""
+    judge = KeyframeRotationJudge(16.27, 10, 0.0)
+    world = WorldCovariance(True, K, 1.0)
 
-    def project(T):
-        Xc = (X - T[:3, 3]) @ T[:3, :3]
-        return Xc[:, :2] / Xc[:, 2:] * 500.0 + [320, 240]
-    return (np.arange(n), project(Ta) + rng.normal(scale=0.3, size=(n, 2)), Ta,
-            project(Tb) + rng.normal(scale=0.3, size=(n, 2)), Tb)
-
-
-@pytest.mark.parametrize('seed', [0, 1, 4])
-def test_a_plane_the_other_tracks_contradict_is_no_candidate(seed):
-    """The wall's homography has two decompositions; the wrong one (5 deg off) satisfies
-    the wall's tracks but not the panel's epipolar geometry. A filter that follows it is
-    caught (seeds 1 and 4 passed it before: it was the closest candidate); the truth
-    passes."""
-    ids, za, Ta, zb, Tb = _wall_and_panel(np.random.default_rng(seed))
-    H, _ = cv2.findHomography(za, zb, cv2.USAC_ACCURATE, 1.0)
-    _, Rs, _, _ = cv2.decomposeHomographyMat(H, K)
-    R_ba_true = Tb[:3, :3].T
-    twin = max(Rs, key=lambda R: geo.rotation_angle_deg(R, R_ba_true))
-    assert geo.rotation_angle_deg(twin, R_ba_true) > 4.0
-    truth = check_rotation(K, ids, za, Ta, ids, zb, Tb, 1.0, 1.0, 0.7)
-    assert truth is not None and truth.ambiguous and truth.nees < 16.27
-    follows_twin = check_rotation(K, ids, za, Ta, ids, zb, geo.make_T(twin.T, Tb[:3, 3]),
-                                  1.0, 1.0, 0.7)
-    assert follows_twin is not None and follows_twin.nees > 100
-    assert follows_twin.angle_deg == pytest.approx(
-        geo.rotation_angle_deg(twin, R_ba_true), abs=0.2)
-
-
-@pytest.mark.parametrize('a, b', [(127, 129), (117, 120)])
-def test_a_right_filter_is_not_flagged_through_a_narrow_lens(a, b):
-    """Rendered orbit through a 39 deg lens (seed 8, a near panel before the walls): the
-    essential matrix of these frames' tracks lands in the wrong basin of the epipolar
-    cost (1.5-2.4 deg off, its covariance hundredths), and the check flagged a filter
-    holding the TRUE rotation at a NEES of 6,400-29,000. Polished from translations
-    turned up to 85 deg, the essential matrix finds the right basin: the pair has too
-    little parallax to be judged, and no plane fits all its tracks."""
-    from ekf_vo.tools.synth import SequenceRenderer, SynthConfig
-    cfg = SynthConfig(frames=300, seed=8, trajectory='orbit', fx=900.0)
-    frames = [SequenceRenderer(cfg).frame(k) for k in range(a, b + 1)]
-    p0 = cv2.goodFeaturesToTrack(frames[0][1], 400, 0.01, 8)
-    p, ok = p0.copy(), np.ones(len(p0), bool)
-    for prev, cur in zip(frames, frames[1:]):
-        p, status, _ = cv2.calcOpticalFlowPyrLK(prev[1], cur[1], p, None, winSize=(21, 21),
-                                                maxLevel=3)
-        ok &= status.ravel() == 1
-    za, zb = p0[ok].reshape(-1, 2).astype(float), p[ok].reshape(-1, 2).astype(float)
-    ids = np.arange(len(za))
-    chk = check_rotation(cfg.K(), ids, za, frames[0][2], ids, zb, frames[-1][2], 1.0, 1.0,
-                         0.7)
-    assert chk is None or chk.nees < 16.27
+    def pair(ids, za, Ta, zb, Tb):
+        return ids, za, Ta, ids, zb, Tb
+    few = pair(*_two_keyframes(np.random.default_rng(5), n=15))
+    enough = pair(*_two_keyframes(np.random.default_rng(2)))
+    judge.submit(K, *few, 1.0, 1.0, 0.7, first='keyframe 3')
+    judge.take(world)
+    assert judge.span_from == 'keyframe 3'
+    judge.submit(K, *enough, 1.0, 1.0, 0.7, first='keyframe 3')
+    judge.take(world)
+    assert judge.last is not None and judge.span_from is None
+    judge.submit(K, *few, 1.0, 1.0, 0.7, first='keyframe 5')
+    judge.take(world)
+    judge.reset()
+    assert judge.span_from is None
+    judge.close()

@@ -257,9 +257,7 @@ def robust_sampson_cost(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
 
 
 def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
-                K: np.ndarray, gate_px: float, huber_px: float,
-                turns: tuple[float, ...] = _START_TURNS,
-                start_iterations: int = _START_ITERATIONS
+                K: np.ndarray, gate_px: float, huber_px: float
                 ) -> tuple[np.ndarray, np.ndarray] | None:
     """A polished model (R0, t0) polished again from translations turned away from it:
     the model of another basin of the epipolar cost that fits the pixels better by more
@@ -281,12 +279,12 @@ def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.nda
     cost0 = robust_sampson_cost(R0, t0, p_ref, p_cur, K, gate_px, huber_px)
     winner = None
     B = _tangent_basis(t0)
-    for turn in turns:
+    for turn in _START_TURNS:
         for axis in range(2):
             t_start = t0 + math.tan(turn) * B[:, axis]
             R1, t1 = refine_relative_pose(R0, t_start / np.linalg.norm(t_start), p_ref,
                                           p_cur, K, gate_px=gate_px, huber_px=huber_px,
-                                          iterations=start_iterations)
+                                          iterations=_START_ITERATIONS)
             R1, t1 = refine_relative_pose(R1, t1, p_ref, p_cur, K, gate_px=gate_px,
                                           huber_px=huber_px) \
                 if robust_sampson_cost(R1, t1, p_ref, p_cur, K, gate_px, huber_px) < cost0 \

@@ -443,13 +443,20 @@ class VisualOdometry(Initialisation, LossHandling):
         # the pair from the last keyframe, or the second look at a doubtful pair from
         # that pair's first keyframe (rotation_check.KeyframeRotationJudge.judge)
         longer = self._rotation_job.wants_second_look and len(kfs) >= 3
-        a, b = kfs[-3] if longer else kfs[-2], kfs[-1]
+        span_from = self._rotation_job.span_from
+        if longer:
+            a = kfs[-3]
+        elif span_from is not None and any(kf is span_from for kf in kfs[:-1]):
+            a = span_from          # the last pair was not judged: span it and this one
+        else:
+            a = kfs[-2]
+        b = kfs[-1]
         # in a worker thread; its verdict is taken before the next frame's (_take_check)
         self._rotation_job.submit(
             self.camera.K, a.ids, a.px, a.T_world_cam_filter, b.ids, b.px,
             b.T_world_cam_filter, c.bootstrap_ransac_px, c.rotation_check_min_parallax_deg,
             H_OVER_E_RATIO, self.ekf.pose_covariance()[3:, 3:], seed=self.frame_index,
-            longer=longer)
+            longer=longer, first=a)
 
     def _take_check(self) -> None:
         """The last keyframe's rotation check (_check_rotation), before anything it

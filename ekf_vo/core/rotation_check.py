@@ -20,12 +20,7 @@ inliers) is ambiguous: two solutions fit a plane, and on the rendered room's wal
 essential matrix's was degrees off while its covariance said hundredths. Such a pair is
 judged against each candidate (the essential matrix's rotation and those of the
 homography's decompositions with the points in front) and the filter is given the one
-it is closest to: the least the evidence says (docs/method.md §15.11). A decomposition
-whose motion fits the shared tracks' epipolar geometry worse than the essential matrix's
-by more than chance is not a candidate: the homography explained most tracks, not the
-scene (§15.18). And the essential matrix is polished again from translations turned far
-from RANSAC's, as the bootstrap's is, since a narrow view leaves a second basin of the
-epipolar cost (§15.18).
+it is closest to: the least the evidence says (docs/method.md §15.11).
 
 The discrepancies of consecutive pairs add up (`KeyframeRotationJudge`): a filter that
 is off by half a degree at every keyframe, each pair within its bound, is off by degrees
@@ -42,9 +37,7 @@ import cv2
 import numpy as np
 
 from . import geometry as geo
-from .bootstrap import (_BASIN_CHI2, _GATE_SCALE, _HUBER_SCALE, _MIN_SAMPSON_VAR_PX2,
-                        homogeneous, other_basin, refine_relative_pose,
-                        robust_sampson_cost, sampson_of_fundamental, sampson_px)
+from .bootstrap import homogeneous, sampson_of_fundamental
 from .map_uncertainty import relative_pose_covariance
 from .orientation_only import fit_rotation
 
@@ -56,10 +49,6 @@ _PURE_ROTATION_SHARE = 0.9
 #: a homography decomposition whose plane normal is within this of the last ambiguous
 #: pair's is that plane seen again (the filter's orientation carries it to the world)
 NORMAL_CONTINUITY_DEG = 15.0
-#: turns [rad] of the translation from which the essential matrix is polished again
-#: (bootstrap.other_basin, whose own 20 and 40 deg miss it): through a narrow lens the
-#: other basin lay 78-89 deg away (docs/method.md §15.18)
-_CHECK_TURNS = tuple(np.radians(d) for d in (40.0, -40.0, 80.0, -80.0))
 
 
 @dataclass(frozen=True)
@@ -91,9 +80,8 @@ def _normalised(K: np.ndarray, px: np.ndarray) -> np.ndarray:
 
 def _homography_candidates(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray,
                            sigma_px: float, min_parallax_deg: float
-                           ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """(R_ba, 3x3 rotation covariance in frame a, unit plane normal in frame a, t_ba over
-    the plane's distance) of each
+                           ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(R_ba, 3x3 rotation covariance in frame a, unit plane normal in frame a) of each
     decomposition of H that keeps the points in front of both views (at most two: the
     planar ambiguity) and whose plane is seen with min_parallax_deg of median parallax. The covariance is the
     two-view one of that decomposition's own geometry (the plane's points at unit
@@ -120,35 +108,8 @@ def _homography_candidates(H: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.
         if _median_parallax_deg(X_a, T_a_b[:3, 3]) < min_parallax_deg:
             continue                  # no baseline: a rotation, judged by _pure_rotation
         out.append((R_ba, rays_cov + relative_pose_covariance(
-            K, np.eye(4), T_a_b, X_a, sigma_px)[3:, 3:], n / np.linalg.norm(n), t_ba))
+            K, np.eye(4), T_a_b, X_a, sigma_px)[3:, 3:], n / np.linalg.norm(n)))
     return out
-
-
-def _fits_as_well(R_plane: np.ndarray, t_plane: np.ndarray, R_e: np.ndarray,
-                  t_e: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray,
-                  threshold_px: float) -> bool:
-    """Whether a homography decomposition's motion (R, t over the plane's distance) fits
-    ALL the shared tracks' epipolar geometry about as well as the essential matrix's
-    (R_e, t_e): not worse by more than chance explains (twice the robust Sampson cost's
-    excess over the residuals' variance, chi-square 5 dof at 99.9 %, the bootstrap's
-    test between basins, docs/method.md §2.1.1).
-
-    Why (docs/method.md §15.18): a small baseline lets a homography explain most tracks
-    within a pixel when the scene is not a plane (a near panel before a far wall through
-    a 39 deg lens). Its decompositions then move the camera along the turn / sideways-step
-    ambiguity: 1.7 deg off the truth with a covariance of 0.02 deg, while the same tracks'
-    essential matrix was 0.00-0.03 deg off. On a plane every decomposition satisfies the
-    epipolar constraint of every track, so a true plane's candidates always pass."""
-    t_norm = float(np.linalg.norm(t_plane))
-    if t_norm < 1e-9:
-        return True                       # no baseline: the epipolar cost says nothing
-    gate, huber = _GATE_SCALE * threshold_px, _HUBER_SCALE * threshold_px
-    r_e = np.abs(sampson_px(R_e, t_e, pa, pb, K))
-    near = r_e < gate
-    var = max(float(np.mean(r_e[near] ** 2)) if near.any() else 0.0, _MIN_SAMPSON_VAR_PX2)
-    excess = robust_sampson_cost(R_plane, t_plane / t_norm, pa, pb, K, gate, huber) - \
-        robust_sampson_cost(R_e, t_e, pa, pb, K, gate, huber)
-    return 2.0 * excess / var < _BASIN_CHI2
 
 
 def _median_parallax_deg(X_a: np.ndarray, centre_b_in_a: np.ndarray) -> float:
@@ -218,20 +179,9 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
     E, mask = cv2.findEssentialMat(pa, pb, K, cv2.USAC_ACCURATE, 0.999, threshold_px)
     if E is None or E.shape != (3, 3) or mask is None:
         return None
-    _, R_ba, t_ba, mask_e, X_h = cv2.recoverPose(E, pa, pb, K, distanceThresh=1e6,
-                                                 mask=mask.copy())
-    if np.count_nonzero(mask_e) >= MIN_POINTS:
-        # USAC's model may sit in the wrong basin of the epipolar cost (docs §15.18): look
-        # for a better one from translations turned far from it, as the bootstrap does
-        gate, huber = _GATE_SCALE * threshold_px, _HUBER_SCALE * threshold_px
-        R_p, t_p = refine_relative_pose(R_ba, t_ba.ravel(), pa, pb, K, gate, huber)
-        found = other_basin(R_p, t_p, pa, pb, K, gate, huber, turns=_CHECK_TURNS)
-        if found is not None:
-            near = (np.abs(sampson_px(*found, pa, pb, K)) < gate).astype(np.uint8) * 255
-            E = geo.skew(found[1]) @ found[0]
-            _, R_ba, t_ba, mask_e, X_h = cv2.recoverPose(E, pa, pb, K, distanceThresh=1e6,
-                                                         mask=near.reshape(-1, 1))
-    inl = mask_e.ravel() > 0
+    _, R_ba, t_ba, mask, X_h = cv2.recoverPose(E, pa, pb, K, distanceThresh=1e6,
+                                               mask=mask.copy())
+    inl = mask.ravel() > 0
     if np.count_nonzero(inl) < MIN_POINTS:
         return None
     X_a = (X_h[:3] / X_h[3]).T[inl]                   # points in frame a, |t| = 1
@@ -257,9 +207,8 @@ def check_rotation(K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
                                                           sigma)[3:, 3:], None))
     if ambiguous:
         h_in = h_mask.ravel() > 0
-        planes = [(R, cov, R_wa @ n) for R, cov, n, t in _homography_candidates(
-            H, K, pa[h_in], pb[h_in], sigma, min_parallax_deg)
-            if _fits_as_well(R, t, R_ba, t_ba.ravel(), K, pa, pb, threshold_px)]
+        planes = [(R, cov, R_wa @ n) for R, cov, n in _homography_candidates(
+            H, K, pa[h_in], pb[h_in], sigma, min_parallax_deg)]
         # |cos| of each plane's angle to the last pair's plane
         cos = [0.0 if plane_normal_world is None else abs(float(c[2] @ plane_normal_world))
                for c in planes]
@@ -349,7 +298,9 @@ class KeyframeRotationJudge:
     began; the largest sum beyond `max_nees`
     against the summed covariances is a drift, and the published covariance is made to
     hold it. A drift beyond `lost_deg` (0: never) means the map no longer holds the
-    camera: it is dropped, not relocalised in (docs/method.md §15.11)."""
+    camera: it is dropped, not relocalised in (docs/method.md §15.11). A pair that is
+    not judged hands its first keyframe back (`span_from`): the next pair starts there,
+    so that the drift over it is seen (§15.18)."""
 
     def __init__(self, max_nees: float, drift_window: int, lost_deg: float) -> None:
         self.max_nees = float(max_nees)
@@ -365,12 +316,19 @@ class KeyframeRotationJudge:
         self._longer = False            #: the submitted check is the second look
         #: why this map no longer holds the camera (a drift beyond lost_deg), or ''
         self.map_lost = ''
+        #: the submitted pair's first keyframe (opaque: the caller's), and the one the
+        #: next pair should start from when that pair was not judged (span_from)
+        self._submitted_first: Any = None
+        self.span_from: Any = None
 
-    def submit(self, *args: Any, longer: bool = False, **kwargs: Any) -> None:
+    def submit(self, *args: Any, longer: bool = False, first: Any = None,
+               **kwargs: Any) -> None:
         """check_rotation(*args, **kwargs) in the worker, with the plane of the last
         ambiguous pair. `longer`: the pair is the second look at a doubtful one (from
-        its first keyframe to the newest)."""
+        its first keyframe to the newest). `first`: the pair's first keyframe, handed
+        back as `span_from` if the pair is not judged."""
         self._longer = bool(longer) and self._doubtful is not None
+        self._submitted_first = first
         self._job.submit(*args, plane_normal_world=self._normal, **kwargs)
 
     @property
@@ -391,6 +349,7 @@ class KeyframeRotationJudge:
         self._total = (np.zeros(3), np.zeros((3, 3)), 0)
         self._normal = None
         self.map_lost = ''
+        self._submitted_first = self.span_from = None
 
     def close(self) -> None:
         self._job.close()
@@ -398,7 +357,11 @@ class KeyframeRotationJudge:
     def take(self, world_cov) -> str:
         """The submitted check's verdict (judge)."""
         longer, self._longer = self._longer, False
-        return self.judge(self._job.take(), world_cov, longer)
+        check = self._job.take()
+        # a pair not judged (too little parallax, too few tracks) leaves its drift
+        # unseen: the next pair starts where it started (docs/method.md §15.18)
+        self.span_from = self._submitted_first if check is None and not longer else None
+        return self.judge(check, world_cov, longer)
 
     def judge(self, check: RotationCheck | None, world_cov, longer: bool = False) -> str:
         """One keyframe pair's check: its evidence, and the drift's, added to
