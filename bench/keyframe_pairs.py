@@ -3,9 +3,10 @@
 docs/method.md §15.2 and §15.11: at each keyframe the filter's rotation since the last one
 is compared with the two-view geometry of the tracks they share, and what the pairs
 report is the drift the published covariance is made to hold. On a rendered sequence
-(ekf-vo-synth, the names of bench.rotation_nees) this records every check the pipeline
-makes, unchanged (a recorder around `rotation_check.check_rotation` and its candidate
-choice: the estimator runs as it always does), and sets each pair beside the truth:
+(ekf-vo-synth, the names of bench.rotation_nees) this reads every check the pipeline
+takes from the frames' results (`FrameResult.keyframe_pair_check`: the pair, the
+filter's orientations it was judged with, the verdict and the candidates weighed), and
+sets each pair beside the truth:
 - reported: the discrepancy the check found (filter minus two-view, deg);
 - true: the filter's actual error over the pair (its relative rotation against the ground
   truth's, deg), what a perfect two-view check would report;
@@ -20,13 +21,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from ekf_vo.core import geometry as geo
-from ekf_vo.core import pipeline, rotation_check
 from .common import machine, write_json
 
 
@@ -44,44 +43,17 @@ def pair_truth(R_world_a: np.ndarray, R_world_b: np.ndarray, R_gt_a: np.ndarray,
     return R_world_a @ _rotvec(R_ab_filter @ R_ab_true.T)
 
 
-@contextmanager
-def recording():
-    """Record every keyframe-pair check of the pipelines run inside: a list that fills
-    with (frame a, frame b, R_world_a, R_world_b, check or None, candidates), candidates
-    being (R_ba, is a plane's) as check_rotation weighed them. The checks themselves are
-    unchanged."""
-    records, weighed = [], {}
-    #: frame index of each recent keyframe, by its filter pose's array: check_rotation is
-    #: handed those arrays, so the pair it judges is found without repeating how the
-    #: pipeline chooses it
-    frame_of: dict[int, int] = {}
-    check, closest = rotation_check.check_rotation, rotation_check._closest
-    submit_check = pipeline.VisualOdometry._check_rotation
-
-    def noting_keyframes(vo) -> None:
-        for kf in (vo.local_map.keyframes if vo.local_map is not None else [])[-3:]:
-            frame_of[id(kf.T_world_cam_filter)] = kf.frame_index
-        submit_check(vo)
-
-    def weighing(candidates, *args):
-        weighed['now'] = [(R.copy(), normal is not None) for R, _, normal in candidates]
-        return closest(candidates, *args)
-
-    def checking(K, ids_a, px_a, T_world_a, ids_b, px_b, T_world_b, *args, **kwargs):
-        weighed['now'] = []
-        out = check(K, ids_a, px_a, T_world_a, ids_b, px_b, T_world_b, *args, **kwargs)
-        records.append((frame_of[id(T_world_a)], frame_of[id(T_world_b)],
-                        T_world_a[:3, :3].copy(), T_world_b[:3, :3].copy(), out,
-                        weighed['now']))
-        return out
-
-    rotation_check.check_rotation, rotation_check._closest = checking, weighing
-    pipeline.VisualOdometry._check_rotation = noting_keyframes
-    try:
-        yield records
-    finally:
-        rotation_check.check_rotation, rotation_check._closest = check, closest
-        pipeline.VisualOdometry._check_rotation = submit_check
+def records_of(results) -> list:
+    """(frame a, frame b, R_world_a, R_world_b, check or None, candidates) of every
+    keyframe-pair check in the frames' results, candidates being (R_ba, is a plane's) as
+    the check weighed them."""
+    out = []
+    for res in results:
+        pair = res.keyframe_pair_check
+        if pair is not None:
+            out.append((pair.frame_a, pair.frame_b, pair.R_world_a, pair.R_world_b,
+                        pair.check, [] if pair.check is None else list(pair.check.candidates)))
+    return out
 
 
 def summarise(records: list, gt_T: np.ndarray) -> dict:
@@ -117,23 +89,18 @@ def summarise(records: list, gt_T: np.ndarray) -> dict:
 
 
 def run(sequence: str, seed: int) -> dict:
-    from . import rotation_nees
-    truth = {}
-    render = rotation_nees._synthetic
+    from functools import partial
 
-    def keeping_truth(*args, **kwargs):
-        out = render(*args, **kwargs)
-        truth['T'] = out[1]
-        return out
+    from . import rotation_nees
     if rotation_nees._synthetic_name(sequence) is None:
         raise ValueError(f'{sequence}: not a rendered sequence of bench.rotation_nees')
-    rotation_nees._synthetic = keeping_truth
-    try:
-        with recording() as records:
-            figures = rotation_nees.run_one(sequence, seed, {})
-    finally:
-        rotation_nees._synthetic = render
-    out = summarise(records, np.asarray(truth['T']))
+    trajectory, speedup, still, fault, camera = rotation_nees._synthetic_name(sequence)
+    results = []
+    gt_s, gt_T, stream_out = rotation_nees._synthetic(
+        trajectory, seed, {}, speedup, still, fault, camera=camera,
+        run=partial(rotation_nees._run_stream, on_result=results.append))
+    figures = rotation_nees.figures(sequence, seed, gt_s, gt_T, stream_out)
+    out = summarise(records_of(results), np.asarray(gt_T))
     out.update({'sequence': sequence, 'seed': seed,
                 'rot_err_max_deg': figures['rot_err_max_deg'],
                 'rot_nees_median': figures['rot_nees_median'],

@@ -120,11 +120,12 @@ def _gt_reliable_window_s(data) -> tuple[float, float]:
     return float(t.min()), float(t.max())
 
 
-def _run_stream(camera: dict, frames, overrides: dict, seed: int):
+def _run_stream(camera: dict, frames, overrides: dict, seed: int, on_result=None):
     """Feed frames through VoStream; (stamps s, poses, covariances, ok per frame,
     resets, located per published pose, the self-calibrations: the rolling shutter's
     readout, the most applied and the last estimate [ms], docs/method.md §15.17, and the
-    largest corners' drop of a lens fall-off correction in force, §6.11)."""
+    largest corners' drop of a lens fall-off correction in force, §6.11). `on_result`:
+    called with each frame's result (bench.keyframe_pairs reads its checks)."""
     cfg = dataclasses.replace(VoConfig(), **overrides).validate()
     stream = VoStream(cfg, seed=seed)
     stream.set_camera(PinholeCamera.from_camera_info(camera))
@@ -134,6 +135,8 @@ def _run_stream(camera: dict, frames, overrides: dict, seed: int):
     for stamp_ns, gray, known in frames:
         res = stream.process(gray, stamp_ns,
                              known if stream.state.value == 'initialising' else None)
+        if on_result is not None:
+            on_result(res)
         calibration['readout_applied_ms_max'] = max(calibration['readout_applied_ms_max'],
                                                     res.readout_s * 1e3)
         if np.isfinite(res.readout_estimate_s):
@@ -258,6 +261,13 @@ def run_one(name: str, seed: int, overrides: dict) -> dict:
         out = _run_stream(data.camera, frames, dict(preset, **overrides), seed)
         if name.endswith('_from12'):
             start, end = _gt_reliable_window_s(data)
+    return figures(name, seed, gt_s, gt_T, out, start, end)
+
+
+def figures(name: str, seed: int, gt_s: np.ndarray, gt_T: np.ndarray, out: tuple,
+            start: float = 0.0, end: float = np.inf) -> dict:
+    """A run's tracking figures and rotation NEES (run_one): `out` is _run_stream's,
+    the NEES over the published poses stamped within [start, end] s."""
     stamps, poses, covs, oks, resets, located, calibration = out
     if len(stamps) < 3:
         return {'sequence': name, 'seed': seed, 'pct_tracked': 0.0, 'first_pose_frame': None,

@@ -284,3 +284,25 @@ def test_a_pair_not_judged_is_spanned_by_the_next():
     judge.reset()
     assert judge.span_from is None
     judge.close()
+
+
+def test_a_taken_check_comes_with_the_record_of_its_pair():
+    """KeyframeRotationJudge.take returns what FrameResult.keyframe_pair_check carries:
+    the pair's frames, the filter's orientations it was judged with, and the verdict
+    (None for a pair not judged); a new map leaves nothing to take."""
+    judge = KeyframeRotationJudge(16.27, 10, 0.0)
+    world = WorldCovariance(True, K, 1.0)
+    ids, za, Ta, zb, Tb = _two_keyframes(np.random.default_rng(2))
+    judge.submit(K, ids, za, Ta, ids, zb, Tb, 1.0, 1.0, 0.7, frames=(4, 9))
+    reason, record = judge.take(world)
+    assert (record.frame_a, record.frame_b) == (4, 9) and not record.second_look
+    assert np.array_equal(record.R_world_a, Ta[:3, :3])
+    assert np.array_equal(record.R_world_b, Tb[:3, :3])
+    assert record.check is judge.last and record.check is not None
+    assert record.check.candidates, 'the candidates the filter was weighed against'
+    few = _two_keyframes(np.random.default_rng(5), n=15)
+    judge.submit(K, few[0], few[1], few[2], few[0], few[3], few[4], 1.0, 1.0, 0.7,
+                 frames=(9, 12))
+    _, record = judge.take(world)
+    assert record.frame_a == 9 and record.check is None
+    judge.close()

@@ -3,8 +3,12 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .rotation_check import KeyframePairCheck
 
 #: smallest variance (m^2, rad^2) of a published pose: a zero covariance would read as
 #: infinite confidence to robot_localization (docs/ros.md)
@@ -64,6 +68,10 @@ class FrameResult:
     readout_s: float = 0.0
     readout_estimate_s: float = float('nan')
     message: str = ''                       #: why not ok / what happened
+    #: the keyframe pair whose rotation check this frame took, as it was judged
+    #: (rotation_check.KeyframePairCheck; None in most frames, and for a check taken
+    #: at a reset or a loss): the benchmarks' record of the checks (§15.2)
+    keyframe_pair_check: 'KeyframePairCheck | None' = None
     #: wall-clock ms of the stages this frame ran: predict, track (KLT and detection),
     #: detect (the detection alone, a part of track), update, map, local_map, refind,
     #: bootstrap, and total (the whole frame, measured on its own)

@@ -57,7 +57,7 @@ from .relocalise import Relocaliser
 JOLT_MISS_PX = 10.5
 from .rolling_shutter import (points_on_rays, rotation_to_stamp_time,
                               translation_to_stamp_time)
-from .rotation_check import KeyframeRotationJudge
+from .rotation_check import KeyframePairCheck, KeyframeRotationJudge
 from .point_filter import PointFilter
 
 logger = logging.getLogger(__name__)
@@ -277,7 +277,7 @@ class VisualOdometry(Initialisation, LossHandling):
         # ---- tracking quality, and the published covariance (docs/method.md §14-15)
         n_found = np.count_nonzero(self._map_inliers) / max(len(rows), 1) * \
             np.count_nonzero(has_point)
-        self._take_check()
+        res.keyframe_pair_check = self._take_check()
         if self._judge(res, n_found, n_in_view):
             return res
         mi = self._map_inliers
@@ -456,17 +456,19 @@ class VisualOdometry(Initialisation, LossHandling):
             self.camera.K, a.ids, a.px, a.T_world_cam_filter, b.ids, b.px,
             b.T_world_cam_filter, c.bootstrap_ransac_px, c.rotation_check_min_parallax_deg,
             H_OVER_E_RATIO, self.ekf.pose_covariance()[3:, 3:], seed=self.frame_index,
-            longer=longer, first=a)
+            longer=longer, first=a, frames=(a.frame_index, b.frame_index))
 
-    def _take_check(self) -> None:
+    def _take_check(self) -> KeyframePairCheck | None:
         """The last keyframe's rotation check (_check_rotation), before anything it
-        informs: the next frame's verdict and published covariance, a reset, a loss."""
+        informs: the next frame's verdict and published covariance, a reset, a loss.
+        Its record (the pair, as checked), or None without one."""
         if not self._rotation_job.pending:
-            return
-        reason = self._rotation_job.take(self.world_cov)
+            return None
+        reason, record = self._rotation_job.take(self.world_cov)
         self.last_rotation_check = self._rotation_job.last
         if reason:
             self.health.flag(reason)
+        return record
 
     def _map_points_in_view(self) -> int:
         """Map points the prior puts inside the image (in front, within its bounds)."""

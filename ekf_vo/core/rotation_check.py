@@ -63,6 +63,24 @@ class RotationCheck:
     ambiguous: bool = False         #: a homography explained the tracks (candidates judged)
     #: the unit normal (world) of the plane the judged candidate sees, None: no plane
     plane_normal_world: np.ndarray | None = None
+    #: every candidate the filter was weighed against: (R_ba, the rotation of b's frame
+    #: from a's; True for a homography decomposition), the judged one among them
+    candidates: tuple = ()
+
+
+@dataclass(frozen=True)
+class KeyframePairCheck:
+    """One keyframe pair's check as it was judged (KeyframeRotationJudge.take): which
+    pair, the filter's orientations it was handed, and the verdict (None: not judged).
+    FrameResult.keyframe_pair_check carries it on the frame where it was taken, for the
+    benchmarks (bench.keyframe_pairs) and for anyone tracing a verdict."""
+
+    frame_a: int                    #: frame index of the pair's first keyframe
+    frame_b: int                    #: and of its second (the newest keyframe)
+    R_world_a: np.ndarray           #: the filter's orientation at a, as judged
+    R_world_b: np.ndarray
+    check: RotationCheck | None
+    second_look: bool = False       #: the wider pair of a second look (§15.2)
 
 
 def _sampson_px(E: np.ndarray, K: np.ndarray, pa: np.ndarray, pb: np.ndarray
@@ -248,7 +266,8 @@ def _closest(candidates: list, R_ab_filter: np.ndarray, filter_part: np.ndarray,
             c[0], R_c) < NORMAL_CONTINUITY_DEG / 10]
         normal = twins[0] if twins else None
     return RotationCheck(R_wa @ d_a, R_wa @ cov @ R_wa.T, nees,
-                         float(np.degrees(np.linalg.norm(d_a))), *stats, normal)
+                         float(np.degrees(np.linalg.norm(d_a))), *stats, normal,
+                         tuple((R.copy(), n is not None) for R, _, n in candidates))
 
 
 class DeferredCheck:
@@ -320,16 +339,25 @@ class KeyframeRotationJudge:
         #: next pair should start from when that pair was not judged (span_from)
         self._submitted_first: Any = None
         self.span_from: Any = None
+        #: the submitted pair (frame indices and the filter's orientations), for the
+        #: record `take` returns
+        self._submitted_pair: tuple | None = None
 
-    def submit(self, *args: Any, longer: bool = False, first: Any = None,
-               **kwargs: Any) -> None:
-        """check_rotation(*args, **kwargs) in the worker, with the plane of the last
-        ambiguous pair. `longer`: the pair is the second look at a doubtful one (from
-        its first keyframe to the newest). `first`: the pair's first keyframe, handed
-        back as `span_from` if the pair is not judged."""
+    def submit(self, K: np.ndarray, ids_a: np.ndarray, px_a: np.ndarray,
+               T_world_a: np.ndarray, ids_b: np.ndarray, px_b: np.ndarray,
+               T_world_b: np.ndarray, *args: Any, longer: bool = False, first: Any = None,
+               frames: tuple[int, int] = (-1, -1), **kwargs: Any) -> None:
+        """check_rotation(K, ids_a, ..., T_world_b, *args, **kwargs) in the worker, with
+        the plane of the last ambiguous pair. `longer`: the pair is the second look at a
+        doubtful one (from its first keyframe to the newest). `first`: the pair's first
+        keyframe, handed back as `span_from` if the pair is not judged. `frames`: the
+        pair's frame indices, for the record `take` returns."""
         self._longer = bool(longer) and self._doubtful is not None
         self._submitted_first = first
-        self._job.submit(*args, plane_normal_world=self._normal, **kwargs)
+        self._submitted_pair = (int(frames[0]), int(frames[1]),
+                                np.array(T_world_a[:3, :3]), np.array(T_world_b[:3, :3]))
+        self._job.submit(K, ids_a, px_a, T_world_a, ids_b, px_b, T_world_b, *args,
+                         plane_normal_world=self._normal, **kwargs)
 
     @property
     def wants_second_look(self) -> bool:
@@ -349,19 +377,23 @@ class KeyframeRotationJudge:
         self._total = (np.zeros(3), np.zeros((3, 3)), 0)
         self._normal = None
         self.map_lost = ''
-        self._submitted_first = self.span_from = None
+        self._submitted_first = self.span_from = self._submitted_pair = None
 
     def close(self) -> None:
         self._job.close()
 
-    def take(self, world_cov) -> str:
-        """The submitted check's verdict (judge)."""
+    def take(self, world_cov) -> tuple[str, KeyframePairCheck | None]:
+        """The submitted check's verdict (judge): the reason to be DEGRADED or '', and
+        the record of the pair as checked."""
         longer, self._longer = self._longer, False
         check = self._job.take()
         # a pair not judged (too little parallax, too few tracks) leaves its drift
         # unseen: the next pair starts where it started (docs/method.md §15.18)
         self.span_from = self._submitted_first if check is None and not longer else None
-        return self.judge(check, world_cov, longer)
+        record = None if self._submitted_pair is None else \
+            KeyframePairCheck(*self._submitted_pair, check, longer)
+        self._submitted_pair = None
+        return self.judge(check, world_cov, longer), record
 
     def judge(self, check: RotationCheck | None, world_cov, longer: bool = False) -> str:
         """One keyframe pair's check: its evidence, and the drift's, added to
