@@ -11,6 +11,8 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   quality 75 (what image_transport's compressed publisher records).
   ``kitti_2x``: KITTI 06 at twice its speed (every other frame, at 10 Hz: 2.4 m a frame).
   ``kitti_reverse``: its frames backwards, at 10 Hz (the car reversing down the street).
+  ``kitti_raw_startN`` / ``kitti_jpeg_startN``: the same frames from recorded frame N on
+  (a node started N frames later: which pair the bootstrap takes, and what follows).
   ``kitti_*_from12``: the same run evaluated on the frames recorded from frame 12 on
   (for ``kitti_reverse``, the first 39 it plays): KITTI 06's ground truth turns
   at an exactly constant rate over frames 0-11 (relative rotations equal to 1e-5 deg,
@@ -41,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 import sys
 from pathlib import Path
 
@@ -77,9 +80,12 @@ def _folder_frames(name: str):
         frames = ((t, g, data.gt_at(k)) for k, (t, g) in enumerate(data.frames()))
         return data, frames, PRESETS['middlebury_dino']
     data = load_folder(shared_data('kitti06_f0-50'))
+    name, start = _kitti_start(name)
     jpeg = name == 'kitti_jpeg'
     n = len(data.stamps_ns)
-    if name == 'kitti_2x':
+    if start:
+        data = _Resequenced(data, np.arange(start, n), recorded_stamps=True)
+    elif name == 'kitti_2x':
         data = _Resequenced(data, np.arange(0, n, 2))
     elif name == 'kitti_reverse':
         data = _Resequenced(data, np.arange(n - 1, -1, -1))
@@ -90,19 +96,29 @@ def _folder_frames(name: str):
     return data, frames(), {}
 
 
+def _kitti_start(name: str) -> tuple[str, int]:
+    """('kitti_raw', 8) of 'kitti_raw_start8'; (name, 0) of any other name."""
+    m = re.fullmatch(r'(kitti_raw|kitti_jpeg)_start(\d+)', name)
+    return (m.group(1), int(m.group(2))) if m else (name, 0)
+
+
 class _Resequenced:
     """KITTI 06's frames in another order, `source_index` (indices of the recorded
     frames), stamped at the camera's 10 Hz, with the ground truth reordered alike:
     every other frame is the car at twice its speed (2.4 m a frame, a highway's speed),
     the frames backwards are the car reversing down the street (the scene flows out of
-    the image from its middle instead of towards its edges)."""
+    the image from its middle instead of towards its edges), the frames from N on a
+    node started later (with their recorded stamps)."""
 
-    def __init__(self, data, source_index: np.ndarray) -> None:
+    def __init__(self, data, source_index: np.ndarray, recorded_stamps: bool = False
+                 ) -> None:
         self._data = data
         self.camera = data.camera
         self.source_index = np.asarray(source_index, np.int64)
         t0, dt = data.stamps_ns[0], data.stamps_ns[1] - data.stamps_ns[0]
-        self.stamps_ns = [int(t0 + k * dt) for k in range(len(self.source_index))]
+        # recorded_stamps: the frames keep theirs (a later start of the same recording)
+        self.stamps_ns = [int(data.stamps_ns[i]) for i in self.source_index] \
+            if recorded_stamps else [int(t0 + k * dt) for k in range(len(self.source_index))]
         self.gt_stamps_s = np.asarray(self.stamps_ns, float) * 1e-9
         self.gt_T_world_cam = np.asarray(data.gt_T_world_cam)[self.source_index]
 
@@ -306,7 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     overrides = overrides_or_report(args.set, 'bench.rotation_nees')
     if overrides is None:
         return 2
-    missing = [s for s in args.sequences if s.removesuffix('_from12') not in SEQUENCES
+    missing = [s for s in args.sequences
+               if _kitti_start(s.removesuffix('_from12'))[0] not in SEQUENCES
                and _synthetic_name(s) is None]
     if missing:
         print(f'bench.rotation_nees: unknown sequence {missing[0]}', file=sys.stderr)

@@ -129,3 +129,24 @@ def test_kitti_backwards_plays_the_recorded_frames_in_reverse_at_ten_hertz():
     # as recorded, the window is the frames from 12 to the end
     assert bench._gt_reliable_window_s(data) == pytest.approx(
         (data.stamps_ns[bench.KITTI_GT_RELIABLE_FROM] * 1e-9, data.stamps_ns[-1] * 1e-9))
+
+
+def test_kitti_started_later_plays_the_recorded_frames_from_there():
+    """bench.rotation_nees' ``kitti_raw_startN``: the recorded frames from N on, with
+    their ground truth; its ``_from12`` window still starts at recorded frame 12."""
+    from bench import rotation_nees as bench
+    assert bench._kitti_start('kitti_jpeg_start8') == ('kitti_jpeg', 8)
+    assert bench._kitti_start('kitti_raw') == ('kitti_raw', 0)
+    assert bench._kitti_start('kitti_2x_start8') == ('kitti_2x_start8', 0)   # not a variant
+    need_shared_data('kitti06_f0-50', 'KITTI started later')
+    from ekf_vo.io.dataset import load_folder
+    from bench.common import shared_data
+    data = load_folder(shared_data('kitti06_f0-50'))
+    later, frames, _ = bench._folder_frames('kitti_raw_start5')
+    played = [g for _, g, _ in frames]
+    recorded = [g for _, g in data.frames()]
+    assert len(played) == len(recorded) - 5
+    np.testing.assert_array_equal(played[0], recorded[5])
+    np.testing.assert_array_equal(later.gt_T_world_cam[0], np.asarray(data.gt_T_world_cam)[5])
+    start, _ = bench._gt_reliable_window_s(later)
+    assert start == pytest.approx(later.stamps_ns[bench.KITTI_GT_RELIABLE_FROM - 5] * 1e-9)
