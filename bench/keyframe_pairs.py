@@ -4,9 +4,10 @@ docs/method.md §15.2 and §15.11: at each keyframe the filter's rotation since 
 is compared with the two-view geometry of the tracks they share, and what the pairs
 report is the drift the published covariance is made to hold. On a rendered sequence
 (ekf-vo-synth, the names of bench.rotation_nees) this reads every check the pipeline
-takes from the frames' results (`FrameResult.keyframe_pair_check`: the pair, the
-filter's orientations it was judged with, the verdict and the candidates weighed), and
-sets each pair beside the truth:
+takes in a tracked frame from the frames' results (`FrameResult.keyframe_pair_check`:
+the pair, the filter's orientations it was judged with, the verdict and the candidates
+weighed; a check taken at a reset or a loss, or still pending at the end, is not
+there), and sets each pair beside the truth:
 - reported: the discrepancy the check found (filter minus two-view, deg);
 - true: the filter's actual error over the pair (its relative rotation against the ground
   truth's, deg), what a perfect two-view check would report;

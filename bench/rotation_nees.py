@@ -84,6 +84,8 @@ def _folder_frames(name: str):
     jpeg = name == 'kitti_jpeg'
     n = len(data.stamps_ns)
     if start:
+        if start > n - 3:
+            raise ValueError(f'{name}_start{start}: KITTI 06 f0-50 has {n} frames')
         data = _Resequenced(data, np.arange(start, n), recorded_stamps=True)
     elif name == 'kitti_2x':
         data = _Resequenced(data, np.arange(0, n, 2))
@@ -104,7 +106,8 @@ def _kitti_start(name: str) -> tuple[str, int]:
 
 class _Resequenced:
     """KITTI 06's frames in another order, `source_index` (indices of the recorded
-    frames), stamped at the camera's 10 Hz, with the ground truth reordered alike:
+    frames), stamped at the camera's 10 Hz (spaced by its first interval) or with their
+    recorded stamps (`recorded_stamps`), with the ground truth reordered alike:
     every other frame is the car at twice its speed (2.4 m a frame, a highway's speed),
     the frames backwards are the car reversing down the street (the scene flows out of
     the image from its middle instead of towards its edges), the frames from N on a
@@ -341,7 +344,11 @@ def main(argv: list[str] | None = None) -> int:
                     'middlebury_dino' if name == 'dino' else 'kitti06_f0-50') is None:
                 print(f'| {name} | - | skipped: ../shared/data absent | | | | | | | | | |')
                 continue
-            r = run_one(name, seed, overrides)
+            try:
+                r = run_one(name, seed, overrides)
+            except ValueError as exc:
+                print(f'bench.rotation_nees: {exc}', file=sys.stderr)
+                return 2
             rows.append(r)
             label = name + (' (ground-truth bootstrap)' if name == 'dino' else '')
             print(f"| {label} | {seed} | {r['first_pose_frame']} | "

@@ -293,11 +293,13 @@ def test_a_taken_check_comes_with_the_record_of_its_pair():
     judge = KeyframeRotationJudge(16.27, 10, 0.0)
     world = WorldCovariance(True, K, 1.0)
     ids, za, Ta, zb, Tb = _two_keyframes(np.random.default_rng(2))
+    R_a_submitted = Ta[:3, :3].copy()
     judge.submit(K, ids, za, Ta, ids, zb, Tb, 1.0, 1.0, 0.7, frames=(4, 9))
     reason, record = judge.take(world)
+    Ta[:3, :3] = np.eye(3)               # the caller's array changes after the check
     assert (record.frame_a, record.frame_b) == (4, 9) and not record.second_look
-    assert np.array_equal(record.R_world_a, Ta[:3, :3])
-    assert np.array_equal(record.R_world_b, Tb[:3, :3])
+    assert np.array_equal(record.R_world_a, R_a_submitted)
+    assert np.array_equal(record.R_world_b, Tb[:3, :3]) and record.R_world_b is not Tb
     assert record.check is judge.last and record.check is not None
     assert record.check.candidates, 'the candidates the filter was weighed against'
     few = _two_keyframes(np.random.default_rng(5), n=15)
@@ -305,4 +307,7 @@ def test_a_taken_check_comes_with_the_record_of_its_pair():
                  frames=(9, 12))
     _, record = judge.take(world)
     assert record.frame_a == 9 and record.check is None
+    # nothing submitted since: nothing to take, no record; a new map changes nothing
+    judge.reset()
+    assert not judge.pending and judge.take(world) == ('', None)
     judge.close()

@@ -146,7 +146,12 @@ def test_kitti_started_later_plays_the_recorded_frames_from_there():
     played = [g for _, g, _ in frames]
     recorded = [g for _, g in data.frames()]
     assert len(played) == len(recorded) - 5
+    # with the stamps they were recorded with (a node started later sees those)
+    assert later.stamps_ns == [int(t) for t in data.stamps_ns[5:]]
+    np.testing.assert_allclose(later.gt_stamps_s, np.asarray(data.stamps_ns[5:]) * 1e-9)
     np.testing.assert_array_equal(played[0], recorded[5])
     np.testing.assert_array_equal(later.gt_T_world_cam[0], np.asarray(data.gt_T_world_cam)[5])
     start, _ = bench._gt_reliable_window_s(later)
-    assert start == pytest.approx(later.stamps_ns[bench.KITTI_GT_RELIABLE_FROM - 5] * 1e-9)
+    assert start == pytest.approx(data.stamps_ns[bench.KITTI_GT_RELIABLE_FROM] * 1e-9)
+    with pytest.raises(ValueError, match='has 51 frames'):
+        bench._folder_frames('kitti_raw_start60')

@@ -377,7 +377,8 @@ class KeyframeRotationJudge:
         self._total = (np.zeros(3), np.zeros((3, 3)), 0)
         self._normal = None
         self.map_lost = ''
-        self._submitted_first = self.span_from = self._submitted_pair = None
+        # (a submitted check not yet taken keeps its pair: take returns both)
+        self._submitted_first = self.span_from = None
 
     def close(self) -> None:
         self._job.close()
