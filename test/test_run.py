@@ -55,6 +55,9 @@ def test_round_trip(synth_bag: Path, tmp_path: Path) -> None:
     assert sum(int(r['ok']) for r in rows) == s.frames_ok
     assert rows[0]['state'] == 'initialising' and rows[-1]['state'] == 'tracking'
     assert 'ms_total' in rows[0] and float(rows[-1]['ms_update']) > 0
+    # the online checks' verdict per frame, as ~/status has it: none before the map
+    assert rows[0]['health'] == '' and rows[-1]['health'] in ('ok', 'degraded')
+    assert all(r['health'] in ('ok', 'degraded', 'lost') for r in rows if int(r['ok']))
 
 
 def test_gt_bootstrap_fixes_scale(synth_bag: Path) -> None:

@@ -16,7 +16,7 @@ from ..config import VoConfig
 
 #: per-frame CSV columns before the per-stage timings (``ms_<stage>``) and the message
 STATS_COLUMNS = ('stamp_ns', 'stamp_s', 'state', 'ok', 'n_tracks', 'n_matches', 'n_inliers',
-                 'n_new_points', 'map_size')
+                 'n_new_points', 'map_size', 'health')
 
 
 @dataclass
@@ -33,13 +33,16 @@ class FrameStats:
     map_size: int
     timings_ms: dict[str, float]
     message: str = ''
+    #: the online checks' verdict ('ok', 'degraded', 'lost'; '' before a map), as ~/status
+    health: str = ''
 
     @classmethod
     def of(cls, stamp_ns: int, res: Any) -> 'FrameStats':
         """The row of a core FrameResult."""
         return cls(stamp_ns, res.state.value, bool(res.ok), int(res.n_tracks),
                    int(res.n_matches), int(res.n_inliers), int(res.n_new_points),
-                   int(res.map_size), dict(res.timings_ms), res.message)
+                   int(res.map_size), dict(res.timings_ms), res.message,
+                   res.health)
 
 
 @dataclass
@@ -150,7 +153,7 @@ def write_stats_csv(path: str | Path, rows: Sequence[FrameStats]) -> None:
         w.writerow([*STATS_COLUMNS, *(f'ms_{s}' for s in stages), 'message'])
         for r in rows:
             w.writerow([r.stamp_ns, f'{r.stamp_ns * 1e-9:.9f}', r.state, int(r.ok), r.n_tracks,
-                        r.n_matches, r.n_inliers, r.n_new_points, r.map_size,
+                        r.n_matches, r.n_inliers, r.n_new_points, r.map_size, r.health,
                         *(f'{r.timings_ms[s]:.3f}' if s in r.timings_ms else ''
                           for s in stages), r.message])
 
