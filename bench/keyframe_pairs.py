@@ -45,25 +45,21 @@ def pair_truth(R_world_a: np.ndarray, R_world_b: np.ndarray, R_gt_a: np.ndarray,
 
 
 def records_of(results) -> list:
-    """(frame a, frame b, R_world_a, R_world_b, check or None, candidates) of every
-    keyframe-pair check in the frames' results, candidates being (R_ba, is a plane's) as
-    the check weighed them."""
-    out = []
-    for res in results:
-        pair = res.keyframe_pair_check
-        if pair is not None:
-            out.append((pair.frame_a, pair.frame_b, pair.R_world_a, pair.R_world_b,
-                        pair.check, [] if pair.check is None else list(pair.check.candidates)))
-    return out
+    """The keyframe-pair checks (rotation_check.KeyframePairCheck) in the frames'
+    results, in the order they were taken."""
+    return [res.keyframe_pair_check for res in results
+            if res.keyframe_pair_check is not None]
 
 
 def summarise(records: list, gt_T: np.ndarray) -> dict:
-    """Per pair and summed: reported and true discrepancies, the judged rotation's error
-    (all in deg; see the module docstring)."""
+    """Per pair (records: KeyframePairCheck) and summed: reported and true
+    discrepancies, the judged rotation's error (all in deg; see the module docstring)."""
     pairs = []
     reported, true_judged, true_all = np.zeros(3), np.zeros(3), np.zeros(3)
-    for a, b, R_a, R_b, out, candidates in records:
-        d_true = pair_truth(R_a, R_b, gt_T[a][:3, :3], gt_T[b][:3, :3])
+    for record in records:
+        a, b, out = record.frame_a, record.frame_b, record.check
+        d_true = pair_truth(record.R_world_a, record.R_world_b, gt_T[a][:3, :3],
+                            gt_T[b][:3, :3])
         true_all += d_true
         row = {'a': a, 'b': b, 'true_deg': float(np.degrees(np.linalg.norm(d_true))),
                'judged': out is not None}
@@ -79,7 +75,7 @@ def summarise(records: list, gt_T: np.ndarray) -> dict:
                     out.discrepancy_world - d_true))),
                 'candidate_errors_deg': [
                     {'plane': plane, 'error_deg': geo.rotation_angle_deg(R_ba.T, R_ab_true)}
-                    for R_ba, plane in candidates]})
+                    for R_ba, plane in out.candidates]})
         pairs.append(row)
     deg = lambda v: float(np.degrees(np.linalg.norm(v)))   # noqa: E731
     return {'pairs': pairs, 'n_pairs': len(pairs),

@@ -41,15 +41,18 @@ def test_each_keyframe_pair_check_is_on_the_result_of_the_frame_that_took_it():
     records = records_of(results)
     assert records, 'the demo makes keyframe-pair checks in its first 120 frames'
     taken_at = [k for k, r in enumerate(results) if r.keyframe_pair_check is not None]
-    for k, (a, b, R_a, R_b, check, candidates) in zip(taken_at, records):
+    for k, record in zip(taken_at, records):
+        a, b, check = record.frame_a, record.frame_b, record.check
+        R_a, R_b = record.R_world_a, record.R_world_b
         # a pair of earlier keyframes, taken on the frame after the newest of them (the
         # check runs in a worker and is taken before the next frame's verdict)
         assert a < b and k == b + 1
         assert np.allclose(R_a @ R_a.T, np.eye(3)) and np.allclose(R_b @ R_b.T, np.eye(3))
         if check is not None:
             # the verdict was weighed against its candidates: the reported one among them
+            candidates = check.candidates
             assert candidates
             d = [np.degrees(np.linalg.norm(geo.quat_to_rotvec(geo.matrix_to_quat(
                 R_a.T @ R_b @ R_c)))) for R_c, _ in candidates]
             assert min(abs(x - check.angle_deg) for x in d) < 1e-6
-    assert any(check is not None for *_, check, _ in records)
+    assert any(record.check is not None for record in records)

@@ -267,7 +267,7 @@ def _closest(candidates: list, R_ab_filter: np.ndarray, filter_part: np.ndarray,
         normal = twins[0] if twins else None
     return RotationCheck(R_wa @ d_a, R_wa @ cov @ R_wa.T, nees,
                          float(np.degrees(np.linalg.norm(d_a))), *stats, normal,
-                         tuple((R.copy(), n is not None) for R, _, n in candidates))
+                         tuple((R, n is not None) for R, _, n in candidates))
 
 
 class DeferredCheck:
