@@ -9,7 +9,8 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
 ``~/status`` says) was not OK. Sequences:
 
 - ``kitti_raw`` / ``kitti_jpeg``: KITTI 06 frames 0-50, raw or re-encoded as JPEG
-  quality 75 (what image_transport's compressed publisher records).
+  quality 75 (what image_transport's compressed publisher records); ``kitti_jpegQ``
+  (``kitti_jpeg30``) at quality Q.
   ``kitti_2x``: KITTI 06 at twice its speed (every other frame, at 10 Hz: 2.4 m a frame).
   ``kitti_reverse``: its frames backwards, at 10 Hz (the car reversing down the street).
   ``kitti_raw_startN`` / ``kitti_jpeg_startN``: the same frames from recorded frame N on
@@ -28,7 +29,8 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   stands for 1 s before it moves (its first view 30 times, with fresh sensor noise), as
   a robot waits when the node starts (§15.12). With a camera suffix (``_hd``,
   ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy``, ``_ss2``, ``_blur``,
-  ``_rs`` (30 ms), ``_rs10``, ``_jpeg``: ``handheld_rotation_hd``, see CAMERAS): the same
+  ``_rs`` (30 ms), ``_rs10``, ``_jpeg``, ``_jpegQ`` at quality Q: ``handheld_rotation_hd``,
+  ``walk_jpeg30``, see CAMERAS): the same
   motion seen through another lens or sensor (docs/method.md §15.13). ``car`` and
   ``car_turn`` drive down a rendered street through KITTI's camera (§15.16). With
   ``_repeat``, ``_jitter``, ``_flicker``, ``_exposure``, ``_overlay``, ``_body``,
@@ -82,7 +84,7 @@ def _folder_frames(name: str):
         return data, frames, PRESETS['middlebury_dino']
     data = load_folder(shared_data('kitti06_f0-50'))
     name, start = _kitti_start(name)
-    jpeg = name == 'kitti_jpeg'
+    quality = _jpeg_quality(name.removeprefix('kitti_'))
     n = len(data.stamps_ns)
     if start:
         if start > n - 3:
@@ -95,14 +97,33 @@ def _folder_frames(name: str):
 
     def frames():
         for t, g in data.frames():
-            yield t, (_jpeg(g) if jpeg else g), None
+            yield t, (g if quality is None else _jpeg(g, quality)), None
     return data, frames(), {}
 
 
 def _kitti_start(name: str) -> tuple[str, int]:
     """('kitti_raw', 8) of 'kitti_raw_start8'; (name, 0) of any other name."""
-    m = re.fullmatch(r'(kitti_raw|kitti_jpeg)_start(\d+)', name)
+    m = re.fullmatch(r'(kitti_raw|kitti_jpeg\d*)_start(\d+)', name)
     return (m.group(1), int(m.group(2))) if m else (name, 0)
+
+
+def _real_sequence(name: str) -> str:
+    """The SEQUENCES entry a real sequence's name plays ('kitti_jpeg' of
+    'kitti_jpeg30_start6_from12'); the name itself when it is none."""
+    name, _ = _kitti_start(name.removesuffix('_from12'))
+    return 'kitti_jpeg' if re.fullmatch(r'kitti_jpeg\d+', name) else name
+
+
+def _jpeg_quality(variant: str) -> int | None:
+    """The JPEG quality of an encoding variant: 'jpeg' (``kitti_jpeg``, the ``_jpeg``
+    suffix) JPEG_QUALITY, 'jpeg30' 30; None for any other variant."""
+    m = re.fullmatch(r'jpeg(\d*)', variant)
+    if m is None:
+        return None
+    quality = int(m.group(1) or JPEG_QUALITY)
+    if not 1 <= quality <= 100:
+        raise ValueError(f'JPEG quality {quality} is not in 1..100')
+    return quality
 
 
 class _Resequenced:
@@ -209,7 +230,9 @@ def _synthetic_name(name: str) -> tuple[str, int, int, str, str] | None:
     'handheld_rotation_hd'), or None for a real one."""
     fault = next((f for f in stream_faults.FAULTS if name.endswith('_' + f)), '')
     name = name.removesuffix('_' + fault) if fault else name
-    camera = next((c for c in CAMERAS if name.endswith('_' + c)), '')
+    quality = re.search(r'_(jpeg\d+)$', name)
+    camera = quality.group(1) if quality else \
+        next((c for c in CAMERAS if name.endswith('_' + c)), '')
     name = name.removesuffix('_' + camera) if camera else name
     still = STILL_FRAMES if name.endswith('_still') else 0
     name = name.removesuffix('_still')
@@ -221,9 +244,9 @@ def _synthetic_name(name: str) -> tuple[str, int, int, str, str] | None:
     return None
 
 
-def _jpeg(gray: np.ndarray) -> np.ndarray:
-    """A grey image through JPEG at JPEG_QUALITY and back."""
-    _, buf = cv2.imencode('.jpg', gray, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+def _jpeg(gray: np.ndarray, quality: int = JPEG_QUALITY) -> np.ndarray:
+    """A grey image through JPEG at `quality` and back."""
+    _, buf = cv2.imencode('.jpg', gray, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
 
 
@@ -231,8 +254,9 @@ def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
                still: int = 0, fault: str = '', run=None, camera: str = ''):
     """Render a sequence (ground-truth stamps [s] and T_world_cam) and feed it to
     `run(camera info, frames, overrides, seed)` (default: _run_stream), whose result is
-    returned third. `camera`: a CAMERAS variant ('' the renders' own)."""
+    returned third. `camera`: a CAMERAS variant ('' the renders' own) or 'jpegQ'."""
     from ekf_vo.tools.synth import SynthConfig, render_sequence
+    quality = _jpeg_quality(camera)                        # a bad one before rendering
     scfg = SynthConfig(frames=SYNTHETIC[trajectory], seed=seed, trajectory=trajectory,
                        **{**TRAJECTORY_CAMERAS.get(trajectory, {}), **CAMERAS.get(camera, {})})
     seq = list(render_sequence(scfg))
@@ -248,10 +272,10 @@ def _synthetic(trajectory: str, seed: int, overrides: dict, speedup: int = 1,
         seq = standing + [(t + still * dt, im, T) for t, im, T in seq]
     if fault:
         seq = stream_faults.apply(fault, seq, seed)
-    if camera == 'jpeg':
+    if quality is not None:
         # the encoder comes after the sensor and the optics (vignetting, flicker, a clock
         # burned in); the stream's timing faults (repeat, jitter) commute with it
-        seq = [(s, _jpeg(im), T) for s, im, T in seq]
+        seq = [(s, _jpeg(im, quality), T) for s, im, T in seq]
     info = {'width': scfg.width, 'height': scfg.height, 'K': scfg.K(), 'D': scfg.D(),
             'distortion_model': 'plumb_bob'}
     gt_s = np.array([s for s, _, _ in seq]) * 1e-9
@@ -335,8 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     if overrides is None:
         return 2
     missing = [s for s in args.sequences
-               if _kitti_start(s.removesuffix('_from12'))[0] not in SEQUENCES
-               and _synthetic_name(s) is None]
+               if _real_sequence(s) not in SEQUENCES and _synthetic_name(s) is None]
     if missing:
         print(f'bench.rotation_nees: unknown sequence {missing[0]}', file=sys.stderr)
         return 2

@@ -155,3 +155,29 @@ def test_kitti_started_later_plays_the_recorded_frames_from_there():
     assert start == pytest.approx(data.stamps_ns[bench.KITTI_GT_RELIABLE_FROM] * 1e-9)
     with pytest.raises(ValueError, match='has 51 frames'):
         bench._folder_frames('kitti_raw_start60')
+
+
+def test_a_jpeg_variant_names_its_quality():
+    """``kitti_jpeg30`` and the ``_jpeg30`` suffix encode at quality 30 (``kitti_jpeg``,
+    ``_jpeg``: 75); a quality outside 1..100 is a one-line error with exit 2."""
+    from bench import rotation_nees as bench
+    assert bench._jpeg_quality('jpeg') == bench.JPEG_QUALITY == 75
+    assert bench._jpeg_quality('jpeg30') == 30
+    assert bench._jpeg_quality('raw') is None and bench._jpeg_quality('2x') is None
+    assert bench._real_sequence('kitti_jpeg30_start6_from12') == 'kitti_jpeg'
+    assert bench._real_sequence('kitti_raw_from12') == 'kitti_raw'
+    assert bench._synthetic_name('walk_jpeg30') == ('walk', 1, 0, '', 'jpeg30')
+    assert bench._synthetic_name('orbit_x2_jpeg50_flicker') == ('orbit', 2, 0, 'flicker',
+                                                                'jpeg50')
+    rng = np.random.default_rng(0)
+    gray = np.clip(rng.normal(128, 40, (48, 64)), 0, 255).astype(np.uint8)
+    # a lower quality loses more of the image
+    errs = [np.abs(bench._jpeg(gray, q).astype(int) - gray).mean() for q in (90, 75, 30)]
+    assert errs[0] < errs[1] < errs[2]
+    np.testing.assert_array_equal(bench._jpeg(gray), bench._jpeg(gray, 75))
+    out = subprocess.run([sys.executable, '-m', 'bench.rotation_nees', '--sequences',
+                          'walk_jpeg0'], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == [
+        'bench.rotation_nees: JPEG quality 0 is not in 1..100']
