@@ -640,12 +640,13 @@ def section_speed(tp: dict, quick: bool) -> str:
                        ('kitti_1226x370', 'KITTI 06 1226x370 (51 frames)')):
         r = tp.get(key, {})
         if 'fps' not in r:
-            rows.append([label, r.get('skipped', '-')] + ['-'] * 6)
+            rows.append([label, r.get('skipped', '-')] + ['-'] * 7)
             continue
         st = r['stage_ms_mean']
         rows.append([label, _f(r['fps'], 1), _f(st.get('total'), 1),
                      _f(r['stage_ms_p95'].get('total'), 1), _f(st.get('predict')),
-                     _f(st.get('track')), _f(st.get('update')), _f(st.get('map'))])
+                     _f(st.get('track')), _f(st.get('update')), _f(st.get('top_up')),
+                     _f(st.get('map'))])
     lat_rows = []
     for key, what in (('latency', 'demo 640x480, 30 Hz'), ('latency_kitti',
                                                            'KITTI 06 1226x370, 10 Hz')):
@@ -673,8 +674,8 @@ stage includes 1-point RANSAC over up to 400 points). Wall-clock on the machine 
 title, shared with other jobs{f" (load average when measured: {tp['loadavg']})" if 'loadavg' in tp else ''}; they slow these figures down,
 standalone runs of the same measurement can be ~2x faster on the demo bag.
 
-""", _table(['sequence', 'frames/s', 'mean ms', 'p95 ms', 'predict', 'track', 'update', 'map'],
-            rows), '\n\n![speed](speed.png)\n\n',
+""", _table(['sequence', 'frames/s', 'mean ms', 'p95 ms', 'predict', 'track', 'update',
+                 'top_up', 'map'], rows), '\n\n![speed](speed.png)\n\n',
         '**ROS latency** (vo_node and a map_node, each in its own process, mono8 frames '
         'over DDS):\n\n',
         lat_txt, '\n'])

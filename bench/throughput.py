@@ -48,10 +48,11 @@ def plot(res: dict, out: Path) -> list[str]:
     plt = pyplot(out)
     runs = [(k, res[k]) for k in ('demo_640x480', 'kitti_1226x370') if 'fps' in res[k]]
     fig, ax = plt.subplots(figsize=(8, 4))
-    stages = ['predict', 'track', 'update', 'map']
+    stages = ['predict', 'track', 'update', 'top_up', 'map']
     for i, (name, r) in enumerate(runs):
         left = 0.0
-        for st, c in zip(stages, ('tab:gray', 'tab:blue', 'tab:orange', 'tab:green')):
+        for st, c in zip(stages, ('tab:gray', 'tab:blue', 'tab:orange', 'tab:cyan',
+                                  'tab:green')):
             w = r['stage_ms_mean'].get(st, 0.0)
             ax.barh(i, w, left=left, color=c, label=st if i == 0 else None)
             left += w

@@ -264,3 +264,38 @@ def test_detection_split_over_two_threads_finds_the_same_corners(monkeypatch) ->
         np.testing.assert_array_equal(a.ids, b.ids)
         np.testing.assert_array_equal(a.px, b.px)
     assert sum(t.n_new for t in one[1:]) > 0        # top-ups ran, not only the first frame
+
+
+def test_the_new_corners_can_wait_for_finish() -> None:
+    """track(finish=False) returns the tracks KLT kept and no new corner; finish() adds
+    the corners track() would have (same ids, pixels, ages, counts), and the next track,
+    adopt or reset finishes a frame nobody finished, so the ids never change."""
+    frames = [shifted(2.0 * k, -1.5 * k) for k in range(6)]
+    # the view moves on: some tracks leave it, and each frame tops them up
+    frames += [shifted(30.0 + 25.0 * k, 0.0) for k in range(4)]
+    whole, split, lazy = (FeatureTracker(VoConfig()) for _ in range(3))
+    topped_up = []
+    for k, gray in enumerate(frames):
+        a = whole.track(gray)
+        topped_up.append(a.n_new if k else 0)
+        half = split.track(gray, finish=False)
+        assert half.n_new == 0 and not np.isin(half.ids, a.ids[len(a) - a.n_new:]).any()
+        np.testing.assert_array_equal(half.ids, a.ids[:len(half)])
+        np.testing.assert_array_equal(half.px, a.px[:len(half)])
+        assert half.n_lost == a.n_lost
+        b = split.finish()
+        for x, y in ((a.ids, b.ids), (a.px, b.px), (a.age, b.age)):
+            np.testing.assert_array_equal(x, y)
+        assert (b.n_new, b.n_lost) == (a.n_new, a.n_lost)
+        assert split.stats.n_tracked == whole.stats.n_tracked == len(a)
+        assert split.finish().n_new == b.n_new           # nothing left: the same tracks
+        lazy.track(gray, finish=False)        # never finished: the next call does it
+    assert sum(topped_up) > 0 and whole.stats.n_new > 0
+    assert lazy.next_id == whole.next_id - whole.stats.n_new     # the last is pending
+    lazy.reset()
+    assert lazy.next_id == whole.next_id
+    # adopt finishes first too: the pending corners, then the adopted track
+    split.track(frames[0], finish=False)
+    n_before = split.next_id
+    live = split.adopt(np.array([10 ** 6]), np.array([[320.0, 240.0]]))
+    assert split.next_id > n_before and live.ids[-1] == 10 ** 6

@@ -253,3 +253,32 @@ def test_map_points_are_found_again_as_tracks(sequence):
     ev = ate_pct(frames, results)
     assert ev.pct_tracked >= 90.0 and vo.n_resets == 0
     vo.local_map.close()
+
+
+def test_the_pose_goes_out_before_the_new_corners(sequence):
+    """on_pose sees a tracked frame's final pose before the tracker's new corners are
+    detected (FeatureTracker.finish after it, docs/method.md §17.3): the frames that top
+    the tracks up do it after the callback, and every pose, covariance and track count is
+    the same as without a callback."""
+    camera, frames = sequence
+    _, plain = run(camera, frames)
+    vo = VisualOdometry(VoConfig(), camera)
+    seen, topped_after = [], 0
+    for stamp, img, _ in frames:
+        at_pose = []
+        res = vo.process(img, stamp, on_pose=lambda r: at_pose.append(
+            (vo.tracker.next_id, r.T_world_cam.copy(), r.pose_cov.copy())))
+        if at_pose:
+            next_id, T, cov = at_pose[0]
+            topped_after += vo.tracker.next_id > next_id
+            np.testing.assert_array_equal(T, res.T_world_cam)
+            np.testing.assert_array_equal(cov, res.pose_cov)
+            assert {'track', 'top_up', 'detect'} <= set(res.timings_ms)
+        seen.append(res)
+    assert topped_after >= 5
+    for a, b in zip(plain, seen):
+        assert (a.ok, a.n_tracks, a.n_inliers, a.map_size) == \
+            (b.ok, b.n_tracks, b.n_inliers, b.map_size)
+        if a.ok:
+            np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
+            np.testing.assert_array_equal(a.pose_cov, b.pose_cov)

@@ -194,6 +194,10 @@ class FeatureTracker:
         self._next_id = 0
         self._stats = TrackerStats()
         self._pool: ThreadPoolExecutor | None = None
+        #: what `finish` needs of the frame `track(..., finish=False)` left:
+        #: (raw grey, the grey KLT saw, the kept tracks' positions in the previous and
+        #: this frame, the frame's start time)
+        self._unfinished: tuple | None = None
         self.reset()
 
     def close(self) -> None:
@@ -205,7 +209,10 @@ class FeatureTracker:
     # ------------------------------------------------------------------ public API
 
     def reset(self) -> None:
-        """Forget all tracks and the previous frame; ids keep counting (never reused)."""
+        """Forget all tracks and the previous frame; ids keep counting (never reused). A
+        frame `track` left unfinished is finished first, so the ids stay as they were."""
+        if self._unfinished is not None:
+            self.finish()
         self._prev_gray: np.ndarray | None = None
         self._prev_integral: np.ndarray | None = None     # of _prev_gray, when computed
         self._integral: np.ndarray | None = None          # of this frame's, when computed
@@ -228,8 +235,8 @@ class FeatureTracker:
         return self._next_id
 
     def track(self, gray: np.ndarray,
-              predicted: tuple[np.ndarray, np.ndarray] | Mapping[int, object] | None = None
-              ) -> Tracks:
+              predicted: tuple[np.ndarray, np.ndarray] | Mapping[int, object] | None = None,
+              finish: bool = True) -> Tracks:
         """Track the live corners into `gray` and top them up with new detections.
 
         Args:
@@ -239,12 +246,19 @@ class FeatureTracker:
                 `{id: (u, v)}` (converted with a Python loop). Unknown ids and
                 non-finite positions are ignored; tracks without a prediction start KLT
                 from their previous position.
+            finish: False stops after KLT and returns the tracks it kept (none new); the
+                frame's second half (the brightness change and the lens fall-off measured
+                at those tracks, the new corners) waits for `finish`, which the next
+                `track`, `adopt` or `reset` runs if nobody did. A pose needs only the
+                kept tracks: the pipeline publishes before the new corners exist
+                (docs/method.md §17.3). Either way the tracks and ids are the same.
 
         Returns:
             The live tracks in `gray` (see `Tracks`). A frame that is too small, empty,
             featureless or too dark gives zero tracks (all previous tracks lost) and is
             reported in `stats.rejected_frame`; it never raises on a valid uint8 image.
         """
+        self.finish()
         t_start = time.perf_counter()
         stats = TrackerStats()
         self._stats = stats
@@ -294,6 +308,27 @@ class FeatureTracker:
                               self._raw_integral if gray is raw else None)
             self._drop_camera_fixed(stats)
             stats.track_ms = (time.perf_counter() - t_track) * 1e3
+        stats.n_lost += n_prev - int(self._ids.shape[0])
+        stats.n_tracked = int(self._ids.shape[0])
+        stats.total_ms = (time.perf_counter() - t_start) * 1e3
+        self._unfinished = (raw, gray, pairs, (h, w))
+        if finish:
+            return self.finish()
+        return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(), 0,
+                      stats.n_lost)
+
+    def finish(self) -> Tracks:
+        """The second half of the frame `track(..., finish=False)` left: the brightness
+        change and the lens fall-off measured at the tracks KLT kept, the window the next
+        frame is tracked with, and the new corners (the last rows, with the largest ids).
+        Returns the live tracks; nothing to finish, the live tracks as they are."""
+        todo, self._unfinished = self._unfinished, None
+        stats = self._stats
+        if todo is None:
+            return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(),
+                          stats.n_new, stats.n_lost)
+        t_start = time.perf_counter()
+        raw, gray, pairs, (h, w) = todo
         if self._observes_exposure:
             self.exposure.observe(raw, *pairs, integral=self._raw_integral)
         win = self._steady_win if self.exposure.steady else self._flicker_win
@@ -318,8 +353,7 @@ class FeatureTracker:
         self._prev_shape = (h, w)
         stats.n_tracked = int(self._ids.shape[0])
         stats.n_new = n_new
-        stats.n_lost += n_prev - (stats.n_tracked - n_new)
-        stats.total_ms = (time.perf_counter() - t_start) * 1e3
+        stats.total_ms += (time.perf_counter() - t_start) * 1e3
         return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(),
                       n_new, stats.n_lost)
 
@@ -327,6 +361,7 @@ class FeatureTracker:
         """Add tracks found by another means in the current frame (map points found
         again, core/refind.py) under their own, old ids, which no live track uses; they
         continue from here like any track (age 0). Returns the live tracks."""
+        self.finish()
         ids = np.asarray(ids, np.int64).reshape(-1)
         if len(ids):
             if np.isin(ids, self._ids).any():

@@ -234,16 +234,20 @@ class VisualOdometry(Initialisation, LossHandling):
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        tracks = self.tracker.track(gray, predicted)
+        # the tracks KLT kept; the new corners come after the pose is out (top_up below)
+        tracks = self.tracker.track(gray, predicted, finish=False)
         px = self.camera.undistort(tracks.px)
         timings['track'] = (time.perf_counter() - t) * 1e3
-        timings['detect'] = self.tracker.stats.detect_ms     # a part of 'track'
 
         t = time.perf_counter()
         has_point, X = self.map.lookup(tracks.ids)
         readout_s = self.readout.applied_s
+        prior = None
         if readout_s > 0.0:
-            px = self._to_stamp_time(tracks, px, has_point, X, readout_s)
+            T = self.ekf.T_world_cam
+            prior = (T, self.ekf.x[ANG].copy(), self.ekf.x[VEL].copy(),
+                     geo.median_depth(X, T))
+            px = self._to_stamp_time(tracks.px, px, has_point, X, readout_s, prior)
         rows = np.flatnonzero(has_point)
         if len(rows) > c.max_update_points:
             keep = np.sort(self.rng.choice(len(rows), c.max_update_points, replace=False))
@@ -295,6 +299,13 @@ class VisualOdometry(Initialisation, LossHandling):
         if on_pose is not None:
             on_pose(res)                # the pose is final: publish before the map work
 
+        # ---- the tracker's new corners, for the frames to come (no map point yet)
+        t = time.perf_counter()
+        tracks, px, has_point = self._top_up(tracks, px, has_point, readout_s, prior)
+        res.n_tracks = len(tracks)
+        timings['top_up'] = (time.perf_counter() - t) * 1e3
+        timings['detect'] = self.tracker.stats.detect_ms     # a part of 'top_up'
+
         # ---- map growth, keyframes
         t = time.perf_counter()
         inlier_mask = np.zeros(len(tracks), bool)
@@ -312,22 +323,41 @@ class VisualOdometry(Initialisation, LossHandling):
             timings['refind'] = (time.perf_counter() - t) * 1e3
         return res
 
-    def _to_stamp_time(self, tracks: Tracks, px: np.ndarray, has_point: np.ndarray,
-                       X: np.ndarray, readout_s: float) -> np.ndarray:
-        """A rolling shutter's tracked pixels, each row brought to the stamp's time by
-        the prior's motion (rolling_shutter.py, docs/method.md §15.14): the rotation for
-        every track, the translation at the map point's depth, or, for a track without
-        one, at the median depth of the map in view."""
-        cam, T = self.camera, self.ekf.T_world_cam
-        rows_px = tracks.px[:, 1]
-        px = rotation_to_stamp_time(px, rows_px, self.ekf.x[ANG], readout_s, cam)
-        depth = geo.median_depth(X, T)
+    def _top_up(self, tracks: Tracks, px: np.ndarray, has_point: np.ndarray,
+                readout_s: float, prior: tuple | None
+                ) -> tuple[Tracks, np.ndarray, np.ndarray]:
+        """The frame's tracks with the tracker's new corners (FeatureTracker.finish)
+        after them: all tracks, their ideal pixels (the new ones undistorted and, under a
+        rolling shutter, brought to the stamp's time by the same prior as the others),
+        and which have a map point (no new one does)."""
+        full = self.tracker.finish()
+        n_new = len(full) - len(tracks)
+        if n_new == 0:
+            return full, px, has_point
+        new_px = self.camera.undistort(full.px[-n_new:])
+        no_point = np.zeros(n_new, bool)
+        if prior is not None:
+            new_px = self._to_stamp_time(full.px[-n_new:], new_px, no_point,
+                                         np.empty((0, 3)), readout_s, prior)
+        return full, np.concatenate((px, new_px)), np.concatenate((has_point, no_point))
+
+    def _to_stamp_time(self, px_raw: np.ndarray, px: np.ndarray, has_point: np.ndarray,
+                       X: np.ndarray, readout_s: float, prior: tuple) -> np.ndarray:
+        """A rolling shutter's tracked pixels `px` (ideal; raw `px_raw`), each row
+        brought to the stamp's time by the prior's motion (rolling_shutter.py,
+        docs/method.md §15.14): the rotation for every track, the translation at the
+        map point's depth (`X`, of the rows `has_point`), or, for a track without one,
+        at the median depth of the map in view. `prior`: the filter's predicted
+        (T_world_cam, angular velocity, velocity) and that median depth (None: none)."""
+        cam = self.camera
+        T, omega, v, depth = prior
+        rows_px = px_raw[:, 1]
+        px = rotation_to_stamp_time(px, rows_px, omega, readout_s, cam)
         if depth is None:
             return px
         X_all = points_on_rays(px, cam, T, depth)
         X_all[has_point] = X
-        return translation_to_stamp_time(px, rows_px, X_all, T, self.ekf.x[VEL],
-                                         readout_s, cam)
+        return translation_to_stamp_time(px, rows_px, X_all, T, v, readout_s, cam)
 
     def _observe_readout(self, tracks: Tracks, px: np.ndarray, rows: np.ndarray,
                          X: np.ndarray, used_s: float) -> None:
