@@ -28,7 +28,8 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   same motion (docs/method.md §15.11). With ``_still`` (``walk_still``): the camera
   stands for 1 s before it moves (its first view 30 times, with fresh sensor noise), as
   a robot waits when the node starts (§15.12). With a camera suffix (``_hd``,
-  ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy``, ``_ss2``, ``_blur``,
+  ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy`` (``_noisy10``,
+  ``_noisy15``: 10, 15 grey levels), ``_ss2``, ``_blur``,
   ``_rs`` (30 ms), ``_rs10``, ``_jpeg``, ``_jpegQ`` at quality Q: ``handheld_rotation_hd``,
   ``walk_jpeg30``, see CAMERAS): the same
   motion seen through another lens or sensor (docs/method.md §15.13). ``car`` and
@@ -206,6 +207,8 @@ CAMERAS = {
     'fisheye': {'distortion': (-0.28, 0.07, 0.0, 0.0, 0.0)},    # a wide-angle webcam
     'barrel': {'distortion': (-0.1, 0.01, 0.001, -0.001, 0.0)},  # mild, decentred
     'noisy': {'noise_px': 5.0},                         # 5 grey levels (2 rendered)
+    'noisy10': {'noise_px': 10.0},                      # a dim sensor's 10 grey levels
+    'noisy15': {'noise_px': 15.0},
     'ss2': {'supersample': 2},                          # anti-aliased texture
     'blur': {'blur': 4.0},                              # 4 px of motion blur
     'rs': {'rolling_shutter_s': 0.03},                  # a webcam's 30 ms readout

@@ -196,7 +196,7 @@ class FeatureTracker:
         self._pool: ThreadPoolExecutor | None = None
         #: what `finish` needs of the frame `track(..., finish=False)` left:
         #: (raw grey, the grey KLT saw, the kept tracks' positions in the previous and
-        #: this frame, the frame's start time)
+        #: this frame, the frame's (height, width))
         self._unfinished: tuple | None = None
         self.reset()
 
@@ -314,8 +314,7 @@ class FeatureTracker:
         self._unfinished = (raw, gray, pairs, (h, w))
         if finish:
             return self.finish()
-        return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(), 0,
-                      stats.n_lost)
+        return self._live(0, stats.n_lost)
 
     def finish(self) -> Tracks:
         """The second half of the frame `track(..., finish=False)` left: the brightness
@@ -325,8 +324,7 @@ class FeatureTracker:
         todo, self._unfinished = self._unfinished, None
         stats = self._stats
         if todo is None:
-            return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(),
-                          stats.n_new, stats.n_lost)
+            return self._live(stats.n_new, stats.n_lost)
         t_start = time.perf_counter()
         raw, gray, pairs, (h, w) = todo
         if self._observes_exposure:
@@ -354,8 +352,7 @@ class FeatureTracker:
         stats.n_tracked = int(self._ids.shape[0])
         stats.n_new = n_new
         stats.total_ms += (time.perf_counter() - t_start) * 1e3
-        return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(),
-                      n_new, stats.n_lost)
+        return self._live(n_new, stats.n_lost)
 
     def adopt(self, ids: np.ndarray, px: np.ndarray) -> Tracks:
         """Add tracks found by another means in the current frame (map points found
@@ -372,11 +369,14 @@ class FeatureTracker:
             self._px = np.ascontiguousarray(np.concatenate(
                 (self._px, np.asarray(px, np.float32).reshape(-1, 2)))[order])
             self._age = np.concatenate((self._age, np.zeros(len(ids), np.int32)))[order]
-        n_new = self._stats.n_new
-        return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(),
-                      n_new, self._stats.n_lost)
+        return self._live(self._stats.n_new, self._stats.n_lost)
 
     # ------------------------------------------------------------------ internals
+
+    def _live(self, n_new: int, n_lost: int) -> Tracks:
+        """The live tracks, copied (the tracker goes on changing its own)."""
+        return Tracks(self._ids.copy(), self._px.astype(np.float64), self._age.copy(),
+                      n_new, n_lost)
 
     def _corrected(self, raw: np.ndarray) -> np.ndarray:
         """What KLT and the detector see of the grey image `raw`: the lens's fall-off in
