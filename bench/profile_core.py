@@ -32,7 +32,8 @@ from .speed import load_kitti_frames, time_core
 
 #: stages whose time is a part of another's
 _STAGE_LABELS = {'detect': 'detect (a part of top_up; of track before the first map)',
-                 'top_up': 'top_up (new corners, after the pose)'}
+                 'top_up': 'top_up (new corners, after the pose)',
+                 'to_pose': 'to_pose (start of the frame to its final pose)'}
 
 
 def _profile(info: dict, frames: list, top: int) -> tuple[str, str, dict]:

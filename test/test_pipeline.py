@@ -273,7 +273,8 @@ def test_the_pose_goes_out_before_the_new_corners(sequence):
             topped_after += vo.tracker.next_id > next_id
             np.testing.assert_array_equal(T, res.T_world_cam)
             np.testing.assert_array_equal(cov, res.pose_cov)
-            assert {'track', 'top_up', 'detect'} <= set(res.timings_ms)
+            assert {'track', 'top_up', 'detect', 'to_pose'} <= set(res.timings_ms)
+            assert 0.0 < res.timings_ms['to_pose'] < res.timings_ms['total']
         seen.append(res)
     assert topped_after >= 5
     for a, b in zip(plain, seen):

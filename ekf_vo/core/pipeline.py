@@ -178,7 +178,8 @@ class VisualOdometry(Initialisation, LossHandling):
         ok and health are final — in a tracked frame before the map work (growth,
         keyframe, rotation check), which then fills in the rest of the same object
         (docs/method.md §17.3). A node publishes odometry from it; frames that do not
-        track (bootstrap, relocalisation, lost) do not call it."""
+        track (bootstrap, relocalisation, lost) do not call it. Its time from the start
+        of this call is the result's `timings_ms['to_pose']`."""
         t0 = time.perf_counter()
         stamp_ns = int(stamp_ns)
         if self._last_stamp_ns is not None and self.state == TrackingState.TRACKING and \
@@ -189,7 +190,12 @@ class VisualOdometry(Initialisation, LossHandling):
         if self.n_maps:
             known_T_world_cam = None
         if self.state == TrackingState.TRACKING:
-            result = self._track(gray, stamp_ns, on_pose)
+            def pose_final(res: FrameResult) -> None:
+                # the latency a consumer of the odometry sees in this process (§17.3)
+                res.timings_ms['to_pose'] = (time.perf_counter() - t0) * 1e3
+                if on_pose is not None:
+                    on_pose(res)
+            result = self._track(gray, stamp_ns, pose_final)
         elif self.state == TrackingState.LOST:
             result = self._relocalise(gray, stamp_ns)
         elif self.multiview is not None:
