@@ -72,9 +72,11 @@ class FrameResult:
     #: (rotation_check.KeyframePairCheck; None in most frames, and for a check taken
     #: at a reset or a loss): the benchmarks' record of the checks (§15.2)
     keyframe_pair_check: 'KeyframePairCheck | None' = None
-    #: wall-clock ms of the stages this frame ran: predict, track (KLT and detection),
-    #: detect (the detection alone, a part of track), update, map, local_map, refind,
-    #: bootstrap, and total (the whole frame, measured on its own)
+    #: wall-clock ms of the stages this frame ran: predict, track (KLT; before the first
+    #: map also the detection), update, to_pose (the start of a tracked frame to its
+    #: final pose), top_up (a tracked frame's new corners, after the pose), detect (the
+    #: detection alone, a part of top_up or track), map, local_map, refind, bootstrap,
+    #: and total (the whole frame, measured on its own)
     timings_ms: dict = field(default_factory=dict)
     track_ids: np.ndarray | None = None     #: (n,) for debug drawing
     track_px: np.ndarray | None = None      #: (n,2) raw pixels
