@@ -240,6 +240,41 @@ def test_kitti_frames_track_with_epipolar_consistency() -> None:
         prev = cur
 
 
+@pytest.mark.data
+def test_the_large_window_retry_can_wait_for_finish() -> None:
+    """With `needed_ids`, the lost tracks nobody needs yet are tried again with the large
+    window in finish(), after the pose (docs/method.md §17.3): before it, every needed
+    track KLT keeps is there at its pixel and only tracks of the others are missing;
+    after it, the same tracks, pixels, ages and counts as without waiting. When fewer
+    than `min_needed` needed tracks are kept, nothing waits."""
+    files = sorted(glob.glob(os.path.join(DATA, 'image_0', '*.png')))
+    if len(files) < 12:
+        pytest.skip('../shared/data absent')
+    whole, split, short = (FeatureTracker(VoConfig()) for _ in range(3))
+    waited = 0
+    for name in files[:12]:
+        gray = cv2.imread(name, cv2.IMREAD_GRAYSCALE)
+        needed = split.live_ids[::2].copy()          # say, the tracks with a map point
+        a = whole.track(gray)
+        half = split.track(gray, finish=False, needed_ids=needed)
+        here = np.isin(a.ids, half.ids)
+        np.testing.assert_array_equal(a.ids[here], half.ids)
+        np.testing.assert_array_equal(a.px[here], half.px)
+        assert np.isin(a.ids[~here][:len(a) - a.n_new], needed).sum() == 0
+        waited += int((~here).sum()) - a.n_new
+        b = split.finish()
+        for x, y in ((a.ids, b.ids), (a.px, b.px), (a.age, b.age)):
+            np.testing.assert_array_equal(x, y)
+        assert (b.n_new, b.n_lost) == (a.n_new, a.n_lost)
+        for field in ('n_tracked', 'n_lost', 'n_klt_failed', 'n_fb_rejected',
+                      'n_border_rejected', 'n_wide_tried', 'n_wide_kept'):
+            assert getattr(split.stats, field) == getattr(whole.stats, field), field
+        now = short.track(gray, finish=False, needed_ids=needed, min_needed=10 ** 6)
+        np.testing.assert_array_equal(now.ids, a.ids[:len(a) - a.n_new])
+        short.finish()
+    assert waited > 0 and whole.stats.n_wide_tried > 0
+
+
 def test_detection_split_over_two_threads_finds_the_same_corners(monkeypatch) -> None:
     """Half the cells go to a helper thread (docs/method.md §17.8): same corners, same
     order, as one thread; and close() stops the helper without ending the tracker."""

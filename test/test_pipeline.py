@@ -9,8 +9,11 @@ from ekf_vo.config import VoConfig
 from ekf_vo.core.camera import PinholeCamera
 from ekf_vo.core.pipeline import TrackingState, VisualOdometry
 from ekf_vo.core.stream import VoStream
+from ekf_vo.io.dataset import load_folder
 from ekf_vo.tools.evaluate import evaluate
 from ekf_vo.tools.synth import SynthConfig, render_sequence
+
+from .support.data import need_shared_data
 
 
 @pytest.fixture(scope='module')
@@ -253,6 +256,43 @@ def test_map_points_are_found_again_as_tracks(sequence):
     ev = ate_pct(frames, results)
     assert ev.pct_tracked >= 90.0 and vo.n_resets == 0
     vo.local_map.close()
+
+
+@pytest.mark.data
+def test_the_large_window_retry_waits_for_the_pose_on_kitti():
+    """With someone waiting for the pose and time to spare, the large window's retry of
+    lost tracks without a map point comes after on_pose (docs/method.md §17.3): it does
+    on KITTI 06, where dozens a frame wait, and every pose, covariance, count and map is
+    the same as a run whose retry does not wait. Without time to spare (frames stamped
+    1 ms apart), nothing waits."""
+    data = load_folder(need_shared_data('kitti06_f0-50', 'KITTI retry-after-pose test'))
+    frames = list(data.frames())[:20]
+    t0 = frames[0][0]
+
+    def run(pose_first: bool, stretch: float) -> tuple[list, int]:
+        stream = VoStream(VoConfig(), seed=0)
+        stream.set_camera(data.camera)
+        out, waited = [], 0
+        for stamp, gray in frames:
+            # 0.3 s apart: time to spare whatever the machine's load
+            stamp = t0 + int((stamp - t0) * stretch)
+            seen = []
+            out.append(stream.process(gray, stamp, on_pose=seen.append) if pose_first
+                       else stream.process(gray, stamp))
+            waited += stream.vo.tracker.stats.n_wide_waited
+            assert not seen or seen[0] is out[-1]
+        return out, waited
+
+    (plain, waited_plain), (first, waited_first) = run(False, 3.0), run(True, 3.0)
+    assert waited_plain == 0 and waited_first > 0
+    assert sum(r.ok for r in first) >= 15
+    for a, b in zip(plain, first):
+        assert (a.ok, a.n_tracks, a.n_inliers, a.map_size, a.n_new_points) == \
+            (b.ok, b.n_tracks, b.n_inliers, b.map_size, b.n_new_points)
+        if a.ok:
+            np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
+            np.testing.assert_array_equal(a.pose_cov, b.pose_cov)
+    assert run(True, 0.01)[1] == 0        # 1 ms apart: no time to spare
 
 
 def test_the_pose_goes_out_before_the_new_corners(sequence):

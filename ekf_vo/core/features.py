@@ -75,6 +75,11 @@ _SECOND_PASS_FRACTION = 0.1
 #: the two halves run at once on two cores (docs/method.md §17.8); below it, the hand-off
 #: costs more than it saves.
 _PARALLEL_MIN_CELLS = 4
+#: The large window's retry of lost tracks the pose does not need waits for `finish`
+#: only when at least this many wait: it costs two KLT calls of its own (each rebuilding
+#: both pyramids, 0.3-0.5 ms), worth it for KITTI's ~80 a frame, not for the demo's ~1
+#: (docs/method.md §17.3).
+_MIN_WIDE_WAITING = 30
 
 
 @dataclass
@@ -125,6 +130,8 @@ class TrackerStats:
     #: how many of those it kept (FeatureTracker._track_wide)
     n_wide_tried: int = 0
     n_wide_kept: int = 0
+    #: of those tried, how many waited for `finish` (`track`'s needed_ids)
+    n_wide_waited: int = 0
     #: median distance [px] between a predicted track's prediction and where KLT found
     #: it, over the predicted tracks that converged from their prediction (0: none)
     prediction_miss_px: float = 0.0
@@ -143,6 +150,22 @@ class TrackerStats:
     #: found disagreed with the one divided out, or was not a gain of the whole frame
     n_gain_rechecked: int = 0
     rejected_frame: str = ''
+
+
+@dataclass
+class _WideLater:
+    """One frame's KLT results, a row per track of the previous frame, while the large
+    window's retry of the lost tracks `rows` waits for `finish` (FeatureTracker._klt)."""
+    gray: np.ndarray            # the grey KLT saw (a gain divided out)
+    ids: np.ndarray
+    age: np.ndarray
+    p0: np.ndarray              # in the previous frame
+    start: np.ndarray           # KLT's starts in this one
+    p1: np.ndarray              # where KLT found them
+    ok: np.ndarray
+    good: np.ndarray            # passed the backward check
+    converged: np.ndarray
+    rows: np.ndarray            # the lost tracks whose retry waits
 
 
 class FeatureTracker:
@@ -198,6 +221,7 @@ class FeatureTracker:
         #: (raw grey, the grey KLT saw, the kept tracks' positions in the previous and
         #: this frame, the frame's (height, width))
         self._unfinished: tuple | None = None
+        self._wide_later: _WideLater | None = None
         self.reset()
 
     def close(self) -> None:
@@ -230,13 +254,21 @@ class FeatureTracker:
         return self._stats
 
     @property
+    def live_ids(self) -> np.ndarray:
+        """The live tracks' ids (ascending; a read-only view)."""
+        ids = self._ids.view()
+        ids.flags.writeable = False
+        return ids
+
+    @property
     def next_id(self) -> int:
         """The id the next detected corner will get."""
         return self._next_id
 
     def track(self, gray: np.ndarray,
               predicted: tuple[np.ndarray, np.ndarray] | Mapping[int, object] | None = None,
-              finish: bool = True) -> Tracks:
+              finish: bool = True, needed_ids: np.ndarray | None = None,
+              min_needed: int = 0) -> Tracks:
         """Track the live corners into `gray` and top them up with new detections.
 
         Args:
@@ -252,6 +284,13 @@ class FeatureTracker:
                 `track`, `adopt` or `reset` runs if nobody did. A pose needs only the
                 kept tracks: the pipeline publishes before the new corners exist
                 (docs/method.md §17.3). Either way the tracks and ids are the same.
+            needed_ids: with finish=False, the tracks the caller needs before `finish`
+                (the pipeline: those with a map point); None: all. The others that the
+                small window loses are tried again with the large one in `finish`, after
+                the pose, unless fewer than `min_needed` of these were kept (then the
+                caller needs the others too: rays without depth) or fewer than
+                _MIN_WIDE_WAITING would wait. The tracks after `finish` are the same
+                either way; before it, the waiting ones are missing.
 
         Returns:
             The live tracks in `gray` (see `Tracks`). A frame that is too small, empty,
@@ -304,9 +343,14 @@ class FeatureTracker:
         self._integral = None
         if n_prev > 0 and self._prev_gray is not None:
             t_track = time.perf_counter()
+            may_wait = None if finish or needed_ids is None \
+                else ~np.isin(self._ids, needed_ids)
             pairs = self._klt(gray, predicted, stats,
-                              self._raw_integral if gray is raw else None)
+                              self._raw_integral if gray is raw else None, may_wait)
             self._drop_camera_fixed(stats)
+            if self._wide_later is not None and min_needed > 0 and np.count_nonzero(
+                    np.isin(self._ids, needed_ids)) < min_needed:
+                pairs = self._retry_wide_later(stats)      # needed now after all
             stats.track_ms = (time.perf_counter() - t_track) * 1e3
         stats.n_lost += n_prev - int(self._ids.shape[0])
         stats.n_tracked = int(self._ids.shape[0])
@@ -327,6 +371,8 @@ class FeatureTracker:
             return self._live(stats.n_new, stats.n_lost)
         t_start = time.perf_counter()
         raw, gray, pairs, (h, w) = todo
+        if self._wide_later is not None:
+            pairs = self._retry_wide_later(stats)
         if self._observes_exposure:
             self.exposure.observe(raw, *pairs, integral=self._raw_integral)
         win = self._steady_win if self.exposure.steady else self._flicker_win
@@ -454,9 +500,11 @@ class FeatureTracker:
         return p_to, (st.reshape(-1) == 1) & np.isfinite(p_to).all(axis=1)
 
     def _klt(self, gray: np.ndarray, predicted: object, stats: TrackerStats,
-             gray_integral: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             gray_integral: np.ndarray | None = None, may_wait: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
         """Move the live tracks into the new frame; drop failures in place. Returns the
-        kept tracks' positions (N, 2) in the previous frame and in this one.
+        kept tracks' positions (N, 2) in the previous frame and in this one. `may_wait`:
+        the rows whose large-window retry may wait for `finish` (`track`), or None.
 
         Each call of calcOpticalFlowPyrLK rebuilds both images' pyramids (~1 ms at
         1226x370; the Python binding takes no prebuilt pyramid), so the calls are few
@@ -507,8 +555,16 @@ class FeatureTracker:
             stats.prediction_miss_px = float(np.median(np.linalg.norm(
                 (p1 - init)[ok & used], axis=1)))
         good = ok & self._fb_passes(gray, p0, p1, init)
+        waiting = np.zeros(0, np.int64)
         if self._win[0] < self._flicker_win and not good.all():
-            self._track_wide(gray, p0, init, p1, ok, good, stats)
+            lost = ~good
+            if may_wait is not None:
+                may_wait = may_wait & ~used       # a predicted track is tried now
+                if np.count_nonzero(lost & may_wait) >= _MIN_WIDE_WAITING:
+                    waiting = np.flatnonzero(lost & may_wait)
+                    stats.n_wide_waited = len(waiting)
+                    lost &= ~may_wait
+            self._track_wide(gray, p0, init, p1, ok, good, stats, np.flatnonzero(lost))
         retry = used & ~good
         converged = ok.copy()
         if retry.sum() >= _RETRY_MIN_FAILED_SHARE * max(stats.n_predicted, 1):
@@ -518,7 +574,18 @@ class FeatureTracker:
             converged[rows] |= converged_plain
             p1[rows[ok_plain]] = p1_plain[ok_plain]
             good[rows[ok_plain]] = True
-        h, w = gray.shape
+        if len(waiting):
+            self._wide_later = _WideLater(gray, self._ids, self._age, p0, init, p1, ok,
+                                          good, converged, waiting)
+        return self._keep(self._ids, self._age, p0, p1, good, converged, gray.shape, stats)
+
+    def _keep(self, ids: np.ndarray, age: np.ndarray, p0: np.ndarray, p1: np.ndarray,
+              good: np.ndarray, converged: np.ndarray, shape: tuple[int, int],
+              stats: TrackerStats) -> tuple[np.ndarray, np.ndarray]:
+        """Keep the tracks (rows of `ids`, `age`) that passed KLT's checks (`good`) and
+        lie inside the border of a frame of `shape`, at `p1`; count the losses. Returns
+        the kept tracks' positions in the previous frame (`p0`) and in this one."""
+        h, w = shape
         m = _BORDER_MARGIN_PX
         inside = (p1[:, 0] >= m) & (p1[:, 0] <= w - 1 - m) & \
                  (p1[:, 1] >= m) & (p1[:, 1] <= h - 1 - m) & np.isfinite(p1).all(axis=1)
@@ -526,32 +593,51 @@ class FeatureTracker:
         stats.n_klt_failed = int((~converged).sum())
         stats.n_fb_rejected = int((converged & ~good).sum())
         stats.n_border_rejected = int((good & ~inside).sum())
-        self._ids = self._ids[keep]
+        self._ids = ids[keep]
         self._px = np.ascontiguousarray(p1[keep], np.float32)
-        self._age = self._age[keep] + 1
+        self._age = age[keep] + 1
         return p0[keep], self._px
+
+    def _retry_wide_later(self, stats: TrackerStats) -> tuple[np.ndarray, np.ndarray]:
+        """The large window's retry that waited (`_klt`), then the frame's tracks kept
+        again from all of KLT's results, as if it had not waited: the same rows, in the
+        same order. Returns the kept tracks' positions in the previous frame and in this
+        one."""
+        later, self._wide_later = self._wide_later, None
+        n_before = int(self._ids.shape[0])
+        self._track_wide(later.gray, later.p0, later.start, later.p1, later.ok, later.good,
+                         stats, later.rows)
+        later.converged[later.rows[later.good[later.rows]]] = True
+        pairs = self._keep(later.ids, later.age, later.p0, later.p1, later.good,
+                           later.converged, later.gray.shape, stats)
+        self._drop_camera_fixed(stats)
+        stats.n_lost -= int(self._ids.shape[0]) - n_before
+        return pairs
 
     def _track_wide(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
                     p1: np.ndarray, ok: np.ndarray, good: np.ndarray,
-                    stats: TrackerStats) -> None:
-        """The tracks the small steady-light window lost (KLT or its forward-backward
-        check failed), tracked again from the same start with the large window
-        (klt_flicker_window_px); p1, ok and good are updated in place.
+                    stats: TrackerStats, rows: np.ndarray) -> None:
+        """The tracks `rows` the small steady-light window lost (KLT or its
+        forward-backward check failed), tracked again from the same start with the large
+        window (klt_flicker_window_px); p1, ok and good are updated in place.
 
         A small window is more precise where it holds (its flow is that of fewer
         pixels), but in fast motion it loses tracks a large one keeps: alone, on a car
         turning at 19 m/s, it lost 15-30 % of the tracks to the check in most frames,
         and one seed of three went 20 deg off (docs/method.md §6.1). Here each track
         gets the small window's precision where it converges, and the large window's
-        reach where it does not."""
-        rows = np.flatnonzero(~good)
+        reach where it does not. The retry of tracks the caller does not need for the
+        pose may wait for `finish` (`track`'s `needed_ids`; docs/method.md §17.3)."""
+        if len(rows) == 0:
+            return
         p1_wide, _, ok_wide = self._track_again(gray, p0, start, rows,
                                                 (self._flicker_win, self._flicker_win))
         kept = rows[ok_wide]
         p1[kept] = p1_wide[ok_wide]
         ok[kept] = True
         good[kept] = True
-        stats.n_wide_tried, stats.n_wide_kept = len(rows), len(kept)
+        stats.n_wide_tried += len(rows)
+        stats.n_wide_kept += len(kept)
 
     def _track_again(self, gray: np.ndarray, p0: np.ndarray, start: np.ndarray,
                      rows: np.ndarray, win: tuple[int, int] | None = None

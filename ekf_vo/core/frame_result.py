@@ -32,7 +32,7 @@ class FrameResult:
     pose_cov: np.ndarray | None = None      #: 6x6 (position, world rotation vector)
     twist_cam: np.ndarray | None = None     #: (6,) v^C [m/s], w^C [rad/s], camera frame
     twist_cov: np.ndarray | None = None     #: 6x6
-    n_tracks: int = 0       #: live tracks, new corners included (at on_pose: KLT's kept)
+    n_tracks: int = 0       #: live tracks, new corners included (at on_pose: KLT's so far)
     n_matches: int = 0                      #: tracks with a landmark used in the update
     n_inliers: int = 0
     n_new_points: int = 0

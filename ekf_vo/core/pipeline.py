@@ -106,6 +106,7 @@ class VisualOdometry(Initialisation, LossHandling):
         self.n_maps = 0                        # bootstraps that started tracking
         self._anchor_T_world_cam = np.eye(4)   # where a new map is attached
         self._anchor_speed = None              # m/s carried over a re-bootstrap
+        self._last_frame_ms: float | None = None   # the last frame's time in process()
         # the orientation before a map (docs/method.md §15.9); its own random stream, so
         # that it does not move the draws of the estimator's RANSACs
         self.orientation = OrientationChain(
@@ -164,7 +165,8 @@ class VisualOdometry(Initialisation, LossHandling):
     # ------------------------------------------------------------------ main entry
     def process(self, gray: np.ndarray, stamp_ns: int,
                 known_T_world_cam: np.ndarray | None = None,
-                on_pose: Callable[[FrameResult], None] | None = None) -> FrameResult:
+                on_pose: Callable[[FrameResult], None] | None = None,
+                pose_first: bool | None = None) -> FrameResult:
         """Process one grey image (uint8 HxW, the camera's size) taken at `stamp_ns`
         (int nanoseconds, increasing): stream.VoStream checks both before calling.
 
@@ -179,7 +181,13 @@ class VisualOdometry(Initialisation, LossHandling):
         keyframe, rotation check), which then fills in the rest of the same object
         (docs/method.md §17.3). A node publishes odometry from it; frames that do not
         track (bootstrap, relocalisation, lost) do not call it. Its time from the start
-        of this call is the result's `timings_ms['to_pose']`."""
+        of this call is the result's `timings_ms['to_pose']`.
+
+        `pose_first` (None: whether `on_pose` is given): someone waits for on_pose, so
+        while the frames leave time to spare (the last one took under half the frame
+        interval) the large window's retry of lost tracks without a map point waits for
+        after it too, though it then costs two KLT calls of its own (about 2 ms at
+        1226x370; docs/method.md §17.3). The results are the same either way."""
         t0 = time.perf_counter()
         stamp_ns = int(stamp_ns)
         if self._last_stamp_ns is not None and self.state == TrackingState.TRACKING and \
@@ -195,7 +203,8 @@ class VisualOdometry(Initialisation, LossHandling):
                 res.timings_ms['to_pose'] = (time.perf_counter() - t0) * 1e3
                 if on_pose is not None:
                     on_pose(res)
-            result = self._track(gray, stamp_ns, pose_final)
+            result = self._track(gray, stamp_ns, pose_final,
+                                 on_pose is not None if pose_first is None else pose_first)
         elif self.state == TrackingState.LOST:
             result = self._relocalise(gray, stamp_ns)
         elif self.multiview is not None:
@@ -212,12 +221,14 @@ class VisualOdometry(Initialisation, LossHandling):
         result.readout_s = self.readout.applied_s
         estimate = self.readout.estimate_s
         result.readout_estimate_s = float('nan') if estimate is None else estimate
-        result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
+        self._last_frame_ms = (time.perf_counter() - t0) * 1e3
+        result.timings_ms['total'] = self._last_frame_ms
         return result
 
     # ------------------------------------------------------------------ tracking
     def _track(self, gray: np.ndarray, stamp_ns: int,
-               on_pose: Callable[[FrameResult], None] | None = None) -> FrameResult:
+               on_pose: Callable[[FrameResult], None] | None = None,
+               pose_first: bool = False) -> FrameResult:
         c = self.cfg
         timings = {}
         dt = (stamp_ns - self._last_stamp_ns) * 1e-9
@@ -240,8 +251,17 @@ class VisualOdometry(Initialisation, LossHandling):
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        # the tracks KLT kept; the new corners come after the pose is out (top_up below)
-        tracks = self.tracker.track(gray, predicted, finish=False)
+        # the tracks KLT kept; the new corners come after the pose is out (top_up below),
+        # and, when someone waits for the pose, so does the large window's retry of lost
+        # tracks without a map point, while the update cannot need them as rays (§17.3)
+        needed = None
+        spare = self._last_frame_ms is not None and self._last_frame_ms < 0.5e3 * dt
+        if pose_first and spare and self.points is None and \
+                c.max_update_points >= c.bearing_max_map_points:
+            live = self.tracker.live_ids
+            needed = live[self.map.contains(live)]
+        tracks = self.tracker.track(gray, predicted, finish=False, needed_ids=needed,
+                                    min_needed=c.bearing_max_map_points)
         px = self.camera.undistort(tracks.px)
         timings['track'] = (time.perf_counter() - t) * 1e3
 
@@ -307,7 +327,8 @@ class VisualOdometry(Initialisation, LossHandling):
 
         # ---- the tracker's new corners, for the frames to come (no map point yet)
         t = time.perf_counter()
-        tracks, px, has_point = self._top_up(tracks, px, has_point, readout_s, prior)
+        tracks, px, has_point, at = self._top_up(tracks, px, has_point, readout_s, prior)
+        rows, inlier_rows = at[rows], at[inlier_rows]
         res.n_tracks = len(tracks)
         timings['top_up'] = (time.perf_counter() - t) * 1e3
         timings['detect'] = self.tracker.stats.detect_ms     # a part of 'top_up'
@@ -331,21 +352,29 @@ class VisualOdometry(Initialisation, LossHandling):
 
     def _top_up(self, tracks: Tracks, px: np.ndarray, has_point: np.ndarray,
                 readout_s: float, prior: tuple | None
-                ) -> tuple[Tracks, np.ndarray, np.ndarray]:
-        """The frame's tracks with the tracker's new corners (FeatureTracker.finish)
-        after them: all tracks, their ideal pixels (the new ones undistorted and, under a
-        rolling shutter, brought to the stamp's time by the same prior as the others),
-        and which have a map point (no new one does)."""
+                ) -> tuple[Tracks, np.ndarray, np.ndarray, np.ndarray]:
+        """The frame's tracks once the tracker has finished it (FeatureTracker.finish):
+        `tracks`, the lost ones the large window kept after the pose (in their rows: ids
+        ascend) and the new corners (last). Returns all tracks, their ideal pixels (the
+        added ones undistorted and, under a rolling shutter, brought to the stamp's time
+        by the same prior as the others), which have a map point (no added one does),
+        and the row of each of `tracks` among them."""
         full = self.tracker.finish()
-        n_new = len(full) - len(tracks)
-        if n_new == 0:
-            return full, px, has_point
-        new_px = self.camera.undistort(full.px[-n_new:])
-        no_point = np.zeros(n_new, bool)
+        at = np.searchsorted(full.ids, tracks.ids)
+        if len(full) == len(tracks):
+            return full, px, has_point, at
+        added = np.ones(len(full), bool)
+        added[at] = False
+        added_px = self.camera.undistort(full.px[added])
+        no_point = np.zeros(len(added_px), bool)
         if prior is not None:
-            new_px = self._to_stamp_time(full.px[-n_new:], new_px, no_point,
-                                         np.empty((0, 3)), readout_s, prior)
-        return full, np.concatenate((px, new_px)), np.concatenate((has_point, no_point))
+            added_px = self._to_stamp_time(full.px[added], added_px, no_point,
+                                           np.empty((0, 3)), readout_s, prior)
+        all_px = np.empty((len(full), 2))
+        all_px[at], all_px[added] = px, added_px
+        all_has_point = np.zeros(len(full), bool)
+        all_has_point[at] = has_point
+        return full, all_px, all_has_point, at
 
     def _to_stamp_time(self, px_raw: np.ndarray, px: np.ndarray, has_point: np.ndarray,
                        X: np.ndarray, readout_s: float, prior: tuple) -> np.ndarray:

@@ -233,7 +233,8 @@ class VoStream:
             if on_pose is not None:
                 on_pose(res)
 
-        result = vo.process(gray, stamp_ns, known_T_world_cam, on_pose=pose_ready)
+        result = vo.process(gray, stamp_ns, known_T_world_cam, on_pose=pose_ready,
+                            pose_first=on_pose is not None)
         if not scaled:                     # a frame that did not track
             self._apply_scale(vo, result)
         return result
