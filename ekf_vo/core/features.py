@@ -39,6 +39,7 @@ import numpy as np
 from ekf_vo.config import VoConfig
 from .camera_fixed import CameraFixedRegions
 from .exposure import COMMON_RATIO, ExposureChange, log_gain
+from .sensor_noise import SensorNoise
 from .vignetting import LensFalloff
 
 logger = logging.getLogger(__name__)
@@ -214,6 +215,7 @@ class FeatureTracker:
             else None
         self._fixed = CameraFixedRegions(int(cfg.camera_fixed_frames))
         self.falloff = LensFalloff(bool(cfg.lens_falloff))
+        self.noise = SensorNoise(cfg.denoise_min_noise_grey, cfg.denoise_sigma_px)
         self._next_id = 0
         self._stats = TrackerStats()
         self._pool: ThreadPoolExecutor | None = None
@@ -308,6 +310,9 @@ class FeatureTracker:
             if gray.ndim == 3:
                 gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
             raw = np.ascontiguousarray(gray)
+            if self.noise.observe(raw) and self._prev_gray is not None:
+                # KLT compares frames smoothed alike
+                self._prev_gray = self.noise.smooth(self._prev_gray)
             gray = self._corrected(raw)
             # one integral image of the raw frame serves the lens fall-off, the exposure
             # and, when nothing corrects the frame, the gain before KLT (0.1-0.4 ms each)
@@ -426,8 +431,9 @@ class FeatureTracker:
 
     def _corrected(self, raw: np.ndarray) -> np.ndarray:
         """What KLT and the detector see of the grey image `raw`: the lens's fall-off in
-        force divided out (vignetting.py), then the optional CLAHE."""
-        gray = self.falloff.correct(raw)
+        force divided out (vignetting.py), a noisy sensor's noise smoothed
+        (sensor_noise.py), then the optional CLAHE."""
+        gray = self.noise.smooth(self.falloff.correct(raw))
         if self._clahe is not None:
             gray = self._clahe.apply(gray)
         return gray

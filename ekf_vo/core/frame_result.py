@@ -63,6 +63,10 @@ class FrameResult:
     #: tracks the steady light's small KLT window lost in this frame and the large one
     #: kept (features.py `_track_wide`): many in fast motion
     klt_wide_kept: int = 0
+    #: the sensor's noise estimated from the frames [grey levels], nan before any, and
+    #: whether the frames were smoothed for it before KLT (sensor_noise.py)
+    sensor_noise_grey: float = float('nan')
+    denoised: bool = False
     #: the rolling shutter's readout [s] the next frame's pixels are corrected with, and
     #: its estimate from the tracked frames so far, nan before any (readout.py)
     readout_s: float = 0.0

@@ -218,6 +218,8 @@ class VisualOdometry(Initialisation, LossHandling):
         result.klt_window_px = self.tracker.stats.klt_window_px
         result.klt_log_gain = self.tracker.stats.klt_log_gain
         result.klt_wide_kept = self.tracker.stats.n_wide_kept
+        result.sensor_noise_grey = self.tracker.noise.estimate_grey
+        result.denoised = self.tracker.noise.smoothing
         result.readout_s = self.readout.applied_s
         estimate = self.readout.estimate_s
         result.readout_estimate_s = float('nan') if estimate is None else estimate

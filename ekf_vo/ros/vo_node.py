@@ -471,6 +471,9 @@ class VoNode(Node):
                 'klt_window_px': r.klt_window_px if r else 0,
                 'klt_log_gain': round(r.klt_log_gain, 3) if r else 0.0,
                 'klt_wide_kept': r.klt_wide_kept if r else 0,
+                'sensor_noise_grey': round(r.sensor_noise_grey, 2)
+                if r and math.isfinite(r.sensor_noise_grey) else '',
+                'denoised': bool(r.denoised) if r else False,
                 'readout_ms': round(r.readout_s * 1e3, 2) if r else 0.0,
                 'readout_estimate_ms': round(r.readout_estimate_s * 1e3, 2)
                 if r and math.isfinite(r.readout_estimate_s) else '',
