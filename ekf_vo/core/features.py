@@ -78,7 +78,7 @@ _SECOND_PASS_FRACTION = 0.1
 _PARALLEL_MIN_CELLS = 4
 #: The large window's retry of lost tracks the pose does not need waits for `finish`
 #: only when at least this many wait: it costs two KLT calls of its own (each rebuilding
-#: both pyramids, 0.3-0.5 ms), worth it for KITTI's ~80 a frame, not for the demo's ~1
+#: both pyramids, about 1 ms at 1226x370), worth it for KITTI's ~80 a frame, not for the demo's ~1
 #: (docs/method.md §17.3).
 _MIN_WIDE_WAITING = 30
 
