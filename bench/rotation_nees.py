@@ -29,7 +29,7 @@ median (2.37 ideal), and the share of frames above the chi-square(3) 99.9 % boun
   stands for 1 s before it moves (its first view 30 times, with fresh sensor noise), as
   a robot waits when the node starts (§15.12). With a camera suffix (``_hd``,
   ``_narrow``, ``_wide``, ``_fisheye``, ``_barrel``, ``_noisy`` (``_noisy10``,
-  ``_noisy15``: 10, 15 grey levels), ``_ss2``, ``_blur``,
+  ``_noisy12``, ``_noisy15``, ``_noisy20``: 10-20 grey levels), ``_ss2``, ``_blur``,
   ``_rs`` (30 ms), ``_rs10``, ``_jpeg``, ``_jpegQ`` at quality Q: ``handheld_rotation_hd``,
   ``walk_jpeg30``, see CAMERAS): the same
   motion seen through another lens or sensor (docs/method.md §15.13). ``car`` and
@@ -208,7 +208,9 @@ CAMERAS = {
     'barrel': {'distortion': (-0.1, 0.01, 0.001, -0.001, 0.0)},  # mild, decentred
     'noisy': {'noise_px': 5.0},                         # 5 grey levels (2 rendered)
     'noisy10': {'noise_px': 10.0},                      # a dim sensor's 10 grey levels
+    'noisy12': {'noise_px': 12.0},
     'noisy15': {'noise_px': 15.0},
+    'noisy20': {'noise_px': 20.0},
     'ss2': {'supersample': 2},                          # anti-aliased texture
     'blur': {'blur': 4.0},                              # 4 px of motion blur
     'rs': {'rolling_shutter_s': 0.03},                  # a webcam's 30 ms readout

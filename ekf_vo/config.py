@@ -146,8 +146,9 @@ class VoConfig(_Params):
     denoise_min_noise_grey: float = param(
         0.0, 'Smooth the frames KLT and the detector see (a Gaussian of denoise_sigma_px) '
         'while the sensor noise estimated from the images (Immerkaer 1996) is at least '
-        'this: a dim sensor at a high gain, e.g. 12 (docs/method.md §6.12: it helps on 5 '
-        'rendered runs of 15 at 15 grey levels and hurts 2, so it is off). 0 = never.',
+        'this: a dim sensor at a high gain, e.g. 12 (docs/method.md §6.12: better on 38 of 51 '
+        'rendered runs at 12-20 grey levels, but it left one of them confidently wrong, so '
+        'it is off). 0 = never.',
         'grey levels',
         0.0, 255.0, group='front end')
     denoise_sigma_px: float = param(
