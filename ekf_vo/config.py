@@ -363,8 +363,9 @@ class VoConfig(_Params):
     ba_window_keyframes: int = param(
         6, 'Keyframes in the adjusted window (the newest ones). 8-10 for a car on a road '
         '(KITTI 06, raw and JPEG: every seed at or below 0.084 % of the path, against up '
-        'to 0.120 %) at 2.5-3x the adjustment\'s time; not the default, since a longer window loses on a '
-        'fast junction, the rendered walk and drone (docs/method.md §12.4, ninth round).',
+        'to 0.120 %) at 2.5-3x the adjustment\'s time; not the default, since a longer '
+        'window loses on a fast junction, the rendered walk and drone (docs/method.md '
+        '§12.4, ninth round).',
         'count', 3, 50,
         group='local_map')
     ba_fixed_keyframes: int = param(
