@@ -1,5 +1,6 @@
 """Windowed bundle adjustment (core/local_ba.py): Jacobian, convergence, honest covariances."""
 import numpy as np
+import pytest
 
 from ekf_vo.core import geometry as geo
 from ekf_vo.core.local_ba import WindowProblem, _Window, adjust_window, point_covariances
@@ -219,6 +220,20 @@ def test_a_window_that_cannot_fix_its_gauge_is_not_adjusted():
     rng = np.random.default_rng(4)
     mapper, landmarks = _mapper_after_a_turn(rng, n_blind=4)   # 2 keyframes see points
     assert mapper._problem(landmarks) is None
+
+
+def test_a_point_seen_twice_by_one_keyframe_is_refused():
+    """The reduced system places one block per (keyframe, point): a second observation
+    of a point by the same keyframe would be lost, so the window is refused (ValueError,
+    which the local map counts as a skipped adjustment) rather than solved wrongly."""
+    rng = np.random.default_rng(6)
+    T, X, ci, pi, px = _scene(rng, n_kf=4, n_pts=20)
+    fixed = np.array([True, True, False, False])
+    dup = np.flatnonzero(ci == 3)[0]
+    problem = WindowProblem(T, fixed, X, np.r_[ci, ci[dup]], np.r_[pi, pi[dup]],
+                            np.vstack((px, px[dup])))
+    with pytest.raises(ValueError, match='twice'):
+        adjust_window(problem, K, 1.0, 3.0, 5)
 
 
 def test_singular_point_information_does_not_raise():
