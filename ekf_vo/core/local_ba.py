@@ -109,6 +109,9 @@ class _Normal:
     #: Hcc of the observations alone (without the pose priors): the information this
     #: window hands on, which must not include what it was handed (it would pile up)
     Hcc_obs: np.ndarray | None = None
+    #: Hcp placed in one (6F,3m) matrix, built once here: every damped step and the
+    #: marginal covariances multiply by it (the blocks change only when this is rebuilt)
+    Hcp_dense: np.ndarray | None = None
 
 
 class _Segments:
@@ -272,7 +275,7 @@ class _Window:
             Hcc = Hcc.reshape(nc, nc)
             gc = gc + np.einsum('fij,fj->fi', self.prior_info, d).ravel()
             cost += self._prior_cost()
-        return _Normal(cost, Hcc, Hcp, Hpp, gc, gp, Hcc_obs)
+        return _Normal(cost, Hcc, Hcp, Hpp, gc, gp, Hcc_obs, st.dense(Hcp) if nc else None)
 
     def solve(self, ne: _Normal, lam: float) -> tuple[np.ndarray, np.ndarray]:
         """Damped step (cameras (6F,), points (m,3)) by Schur complement."""
@@ -284,7 +287,7 @@ class _Window:
         st = self.structure
         Hcc = ne.Hcc + lam * np.diag(np.diag(ne.Hcc))
         W = ne.Hcp @ Hpp_inv[st.pt]                                # (c,6,3)
-        S = Hcc - st.dense(W) @ st.dense(ne.Hcp).T
+        S = Hcc - st.dense(W) @ ne.Hcp_dense.T
         b = ne.gc - st.by_slot.sum(np.einsum('cij,cj->ci', W, ne.gp[st.pt])).ravel()
         d_cam = np.linalg.solve(S + np.eye(self.nc) * 1e-12, -b)
         back = st.by_point.sum(np.einsum('cji,cj->ci', ne.Hcp, d_cam.reshape(-1, 6)[st.slot]))
@@ -308,7 +311,7 @@ class _Window:
             return Hpp_inv, T_cov
         st = self.structure
         W = st.dense(ne.Hcp @ Hpp_inv[st.pt])                      # (6F,3m)
-        S = (ne.Hcc if ne.Hcc_obs is None else ne.Hcc_obs) - W @ st.dense(ne.Hcp).T
+        S = (ne.Hcc if ne.Hcc_obs is None else ne.Hcc_obs) - W @ ne.Hcp_dense.T
         S_inv = np.linalg.pinv(S)
         nf = len(self.free)
         blocks = S_inv.reshape(nf, 6, nf, 6)
