@@ -32,11 +32,13 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
 from ekf_vo.config import VoConfig
+from ekf_vo.core.map_uncertainty import relative_pose_covariance
 from ekf_vo.core.triangulation import TriangulationResult, triangulate_points
 
 logger = logging.getLogger(__name__)
@@ -72,6 +74,19 @@ _START_ITERATIONS = 3
 _BASIN_CHI2 = 20.52
 #: floor of that variance [px^2] (noise-free pixels)
 _MIN_SAMPSON_VAR_PX2 = 0.01
+#: A model that fits within chance of the one taken is another relative pose when its
+#: rotation is beyond the taken pair's covariance: chi-square 3 dof at 99.9 %
+#: (EpipolarBasins.rivals); the covariance is floored at _DISTINCT_FLOOR_RAD a axis, so
+#: the same basin polished a little further (0.1-0.3 deg) is never a rival
+_DISTINCT_CHI2 = 16.27
+_DISTINCT_FLOOR_RAD = np.radians(0.1)
+#: A model of another basin is a candidate only if it triangulates at least this share
+#: of the points the model it is compared with puts in front of both cameras
+#: (EpipolarBasins._explains). On the rendered drone over its floor the right model put
+#: every point in front (276-282 of 276-282) and the other decomposition of the plane
+#: 60-93 %, fitting the pixels better by up to chi 45; noise puts a far point or two
+#: behind, not a few percent
+_CHEIRALITY_SHARE = 0.97
 
 
 @dataclass
@@ -117,6 +132,10 @@ class BootstrapResult:
     triangulation: TriangulationResult | None = None
     #: refused as a rotation: a homography explains the tracks at little parallax
     rotation_like: bool = False
+    #: (k, 3) the rotations of the other poses of a flat scene that fit the pair better
+    #: (EpipolarBasins.rivals), as world (= reference camera) rotation vectors from
+    #: R_cur_ref^T to theirs: what the map's covariance must hold (docs/method.md §2.1.2)
+    rival_rotvecs: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
 
 
 def _se3(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -256,28 +275,125 @@ def robust_sampson_cost(R: np.ndarray, t: np.ndarray, p_ref: np.ndarray,
                                  huber_px * a - 0.5 * huber_px ** 2)))
 
 
-def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
-                K: np.ndarray, gate_px: float, huber_px: float
-                ) -> tuple[np.ndarray, np.ndarray] | None:
-    """A polished model (R0, t0) polished again from translations turned away from it:
-    the model of another basin of the epipolar cost that fits the pixels better by more
-    than chance explains, or None.
+class EpipolarModel(NamedTuple):
+    """A relative pose of a pair polished from one start (epipolar_basins)."""
 
-    Why (docs/method.md §2.1.1): a camera moving forward has a second minimum of the
-    epipolar cost, the translation turned sideways by 20-40 deg with a yaw or pitch of
-    2-3 deg that compensates it (Oliensis, IJCV 2005). RANSAC's model lands in either
-    basin and a polish stays in it: the rendered walk after standing, seed 6, started
-    3.1 deg off with a covariance of 0.2 deg. "More than chance": twice the cost
-    decrease over the residuals' variance passes chi-square 5 dof at 99.9 %. The other
-    basin won by 115-147; the same basin polished further won by 0.1-8.7, moving the
-    rotation by up to 0.24 deg, on two rendered ground robots away from the truth."""
+    cost: float           #: robust Sampson cost (robust_sampson_cost)
+    R: np.ndarray         #: (3, 3) R_cur_ref
+    t: np.ndarray         #: (3,) unit t_cur_ref
+    #: points it triangulates in front of both cameras, with t or -t; 0 for a model
+    #: that fits too badly to be compared (epipolar_basins)
+    n_front: int
+    #: polished from a decomposition of the homography: it replaces RANSAC's model by
+    #: the points it puts in front, never by its cost alone (EpipolarBasins.winner)
+    planar: bool = False
+
+
+@dataclass
+class EpipolarBasins:
+    """Models of a pair polished from several starts (epipolar_basins), RANSAC's first,
+    and the Sampson residuals' variance [px^2] around RANSAC's model that their costs
+    are compared by."""
+
+    models: list[EpipolarModel]
+    variance_px2: float
+
+    def chi(self, cost_a: float, cost_b: float) -> float:
+        """Twice the cost decrease from a to b over the residuals' variance: chi-square
+        5 dof when b is a's model polished further by noise alone."""
+        return 2.0 * (cost_a - cost_b) / self.variance_px2
+
+    def _explains(self, m: EpipolarModel, than: EpipolarModel) -> bool:
+        """`m` puts (nearly) as many points in front of both cameras as `than`: the
+        other decomposition of a flat scene may put many of them behind (a drone over
+        its floor: 7-40 %), which its Sampson cost does not see (_CHEIRALITY_SHARE)."""
+        return m.n_front >= _CHEIRALITY_SHARE * than.n_front
+
+    def winner(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The model that replaces RANSAC's, or None: one that puts clearly more points
+        in front of both cameras and fits the pixels not clearly worse (a flat scene's
+        decomposition RANSAC took, with a third of its points behind); or a turned
+        start that fits better by more than chance (_BASIN_CHI2) and puts as many in
+        front. Of those, the one of least cost. A decomposition of the homography does
+        not win by its cost alone: between the two poses of a flat scene the tracks'
+        cost cannot be trusted to choose (docs/method.md §2.1.2: on the rendered narrow
+        orbit, seed 1, the wrong one fitted better by chi 9-35 in 5 of the 7 pairs
+        0-5 ... 0-11)."""
+        first = self.models[0]
+
+        def wins(m: EpipolarModel) -> bool:
+            chi = self.chi(first.cost, m.cost)
+            if not self._explains(first, m):
+                return chi > -_BASIN_CHI2
+            return not m.planar and chi >= _BASIN_CHI2 and self._explains(m, first)
+
+        better = [m for m in self.models[1:] if wins(m)]
+        if not better:
+            return None
+        best = min(better, key=lambda m: m.cost)
+        return best.R, best.t
+
+    def rivals(self, R: np.ndarray, cov_rot: np.ndarray) -> list[tuple[np.ndarray, float]]:
+        """The models the pair cannot rule out against the model taken (of these,
+        rotation R; cov_rot the 3x3 world covariance of R^T, as relative_pose_covariance
+        gives it): those that fit the pixels better or within chance of it (_BASIN_CHI2)
+        and the points as well, but whose rotation its covariance does not cover
+        (_DISTINCT_CHI2). Each as (d, chi): the world rotation vector from R^T to its
+        R^T, and its chi against the model taken (positive: it fits better)."""
+        taken = min(self.models, key=lambda m: float(np.sum((m.R - R) ** 2)))
+        C = cov_rot + np.eye(3) * _DISTINCT_FLOOR_RAD ** 2
+        found = []
+        for m in self.models:
+            chi = self.chi(taken.cost, m.cost)
+            if chi <= -_BASIN_CHI2 or not self._explains(m, taken):
+                continue                       # fits clearly worse, or its points do
+            d = _rotvec(m.R.T @ R)            # world frame: R1^T = Exp(d) R^T
+            if float(d @ np.linalg.solve(C, d)) > _DISTINCT_CHI2:
+                found.append((d, chi))
+        return found
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(R, np.float64))[0].reshape(3)
+
+
+def epipolar_basins(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
+                    K: np.ndarray, gate_px: float, huber_px: float,
+                    homography: np.ndarray | None = None) -> EpipolarBasins | None:
+    """RANSAC's polished model (R0, t0) and the models polished again from other starts
+    (docs/method.md §2.1.1): translations turned away from it, and the relative poses
+    of the homography's decompositions; None when too few pixels are near the model to
+    judge other starts by.
+
+    Why the turned starts: a camera moving forward has a second minimum of the epipolar
+    cost, the translation turned sideways by 20-40 deg with a yaw or pitch of 2-3 deg
+    that compensates it (Oliensis, IJCV 2005). RANSAC's model lands in either basin and
+    a polish stays in it: the rendered walk after standing, seed 6, started 3.1 deg off
+    with a covariance of 0.2 deg. Why the homography's: a scene close to a plane has two
+    relative poses that fit it (the planar ambiguity, H&Z sec. 13.1.1; Faugeras &
+    Lustman 1988), and RANSAC's five-point model may be the wrong one: the rendered orbit
+    after standing, seed 77, took a pair 8.3 deg off, its translation 63 deg away, where
+    the homography's other decomposition polished to 0.15 deg. What decides between
+    them is in EpipolarBasins: winner and rivals."""
     r0 = np.abs(sampson_px(R0, t0, p_ref, p_cur, K))
     near = r0 < gate_px
     if np.count_nonzero(near) < 2 * _MIN_POINTS_ESSENTIAL:
         return None                        # nothing to judge other starts by
     var = max(float(np.mean(r0[near] ** 2)), _MIN_SAMPSON_VAR_PX2)
+
     cost0 = robust_sampson_cost(R0, t0, p_ref, p_cur, K, gate_px, huber_px)
-    winner = None
+
+    def model(R: np.ndarray, t: np.ndarray, planar: bool = False) -> EpipolarModel:
+        cost = robust_sampson_cost(R, t, p_ref, p_cur, K, gate_px, huber_px)
+        # a model is compared with RANSAC's or with one that fits better: beyond chance
+        # of RANSAC's cost it is never a candidate, and its points are not counted
+        n_front = 0 if 2.0 * (cost - cost0) / var >= _BASIN_CHI2 else \
+            max(int(np.count_nonzero(triangulate_points(
+                np.eye(4), _se3(R, sign * t), p_ref, p_cur, K, gate_px, 0.0).valid))
+                for sign in (1.0, -1.0))
+        return EpipolarModel(cost, R, t, n_front, planar)
+
+    models = [model(R0, t0)]
     B = _tangent_basis(t0)
     for turn in _START_TURNS:
         for axis in range(2):
@@ -285,17 +401,40 @@ def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.nda
             R1, t1 = refine_relative_pose(R0, t_start / np.linalg.norm(t_start), p_ref,
                                           p_cur, K, gate_px=gate_px, huber_px=huber_px,
                                           iterations=_START_ITERATIONS)
-            R1, t1 = refine_relative_pose(R1, t1, p_ref, p_cur, K, gate_px=gate_px,
-                                          huber_px=huber_px) \
-                if robust_sampson_cost(R1, t1, p_ref, p_cur, K, gate_px, huber_px) < cost0 \
-                else (R1, t1)
-            cost = robust_sampson_cost(R1, t1, p_ref, p_cur, K, gate_px, huber_px)
-            if 2.0 * (cost0 - cost) / var >= _BASIN_CHI2 and \
-                    (winner is None or cost < winner[0]):
-                winner = (cost, R1, t1)
-    if winner is None:
+            if robust_sampson_cost(R1, t1, p_ref, p_cur, K, gate_px, huber_px) < cost0:
+                R1, t1 = refine_relative_pose(R1, t1, p_ref, p_cur, K, gate_px=gate_px,
+                                              huber_px=huber_px)
+            models.append(model(R1, t1))
+    if homography is not None:
+        _, Rs, ts, _ = cv2.decomposeHomographyMat(homography, K)
+        starts = []
+        for Rh, th in zip(Rs, ts):
+            th = th.reshape(3)
+            # t and -t cost the same (Sampson): one start per rotation
+            if np.linalg.norm(th) > 0 and not any(np.allclose(Rh, R) for R in starts):
+                starts.append(Rh)
+                models.append(model(*refine_relative_pose(
+                    Rh, th / np.linalg.norm(th), p_ref, p_cur, K, gate_px=gate_px,
+                    huber_px=huber_px), planar=True))
+    return EpipolarBasins(models, var)
+
+
+def other_basin(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
+                K: np.ndarray, gate_px: float, huber_px: float,
+                basins: EpipolarBasins | None = None
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+    """A polished model (R0, t0) polished again from other starts (epipolar_basins, or
+    `basins` already found): the model of another basin that replaces it
+    (EpipolarBasins.winner), its t signed by its points, or None. A turned start wins by
+    fitting the pixels better by more than chance: twice the cost decrease over the
+    residuals' variance passes chi-square 5 dof at 99.9 %. The other basin won by
+    115-147; the same basin polished further won by 0.1-8.7, moving the rotation by up
+    to 0.24 deg, on two rendered ground robots away from the truth."""
+    basins = basins or epipolar_basins(R0, t0, p_ref, p_cur, K, gate_px, huber_px)
+    found = None if basins is None else basins.winner()
+    if found is None:
         return None         # no other basin: at most the same one, polished further
-    _, R, t = winner
+    R, t = found
     # the Sampson cost cannot tell t from -t (R moved continuously from the voted
     # decomposition): the sign that puts most of the model's own inliers in front of
     # the reference camera, depth from x2 ~ lambda R x1 + t
@@ -406,25 +545,49 @@ class TwoViewBootstrap:
             return self._refuse(pose, n_common=n_common, median_flow_px=flow)
         R, t, inl, n_e = pose
 
-        judged = self._judge_pose(ids, p_ref, p_cur, R, t, inl, n_e, n_common, flow,
+        H, h_over_e = self._homography(p_ref, p_cur, n_e)
+        judged = self._judge_pose(ids, p_ref, p_cur, R, t, inl, h_over_e, n_common, flow,
                                   baseline, min_parallax_deg, kept_share)
         if not judged.ok:
             return judged
-        # (f) Only for a pair that would be taken (it costs 8 polishes): is there another
+        # (f) Only for a pair that would be taken (it costs 10 polishes): is there another
         # basin of the epipolar cost that fits better? Then that model is judged instead.
-        found = other_basin(R, t, p_ref, p_cur, self.K, _GATE_SCALE * thr,
-                            _HUBER_SCALE * thr)
-        if found is None:
+        gate, huber = _GATE_SCALE * thr, _HUBER_SCALE * thr
+        basins = epipolar_basins(R, t, p_ref, p_cur, self.K, gate, huber, H)
+        found = other_basin(R, t, p_ref, p_cur, self.K, gate, huber, basins)
+        if found is not None:
+            R, t = found
+            logger.info('bootstrap: the relative pose moved to the other basin of the '
+                        'epipolar cost')
+            inl = np.abs(sampson_px(R, t, p_ref, p_cur, self.K)) < gate
+            judged = self._judge_pose(ids, p_ref, p_cur, R, t, inl, h_over_e, n_common,
+                                      flow, baseline, min_parallax_deg, kept_share)
+        if not judged.ok or basins is None:
             return judged
-        R, t = found
-        logger.info('bootstrap: the relative pose moved to the other basin of the '
-                    'epipolar cost')
-        inl = np.abs(sampson_px(R, t, p_ref, p_cur, self.K)) < _GATE_SCALE * thr
-        return self._judge_pose(ids, p_ref, p_cur, R, t, inl, n_e, n_common, flow,
-                                baseline, min_parallax_deg, kept_share)
+        # (g) Is there another relative pose that fits within chance, beyond this one's
+        # covariance (the planar ambiguity, docs/method.md §2.1.2)? Then the pair cannot
+        # tell which, and a map made of it would be published confidently wrong half
+        # the time.
+        cov_rot = relative_pose_covariance(
+            self.K, np.eye(4), _inverse_se3(judged.T_cur_ref), judged.X_ref,
+            self.cfg.pixel_sigma_px)[3:, 3:]
+        rivals = basins.rivals(R, cov_rot)
+        level = [d for d, chi in rivals if chi < _BASIN_CHI2]
+        if level:
+            return self._refuse(
+                f'ambiguous: two relative poses {np.degrees(np.linalg.norm(level[0])):.1f} '
+                f'deg apart fit the pair about as well (a scene close to a plane); waiting '
+                f'for parallax to tell them apart', n_common=n_common, median_flow_px=flow,
+                h_over_e=h_over_e, median_parallax_deg=judged.median_parallax_deg,
+                n_inliers=judged.n_inliers, triangulation=judged.triangulation)
+        # a flat scene's other pose that fits clearly better: the tracks may be what
+        # favours it (docs/method.md §2.1.2), waiting does not undo them, and the map's
+        # covariance holds the difference instead
+        judged.rival_rotvecs = np.array([d for d, _ in rivals]).reshape(-1, 3)
+        return judged
 
     def _judge_pose(self, ids: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
-                    R: np.ndarray, t: np.ndarray, inl: np.ndarray, n_e: int,
+                    R: np.ndarray, t: np.ndarray, inl: np.ndarray, h_over_e: float,
                     n_common: int, flow: float, baseline: float,
                     min_parallax_deg: float | None, kept_share: float) -> BootstrapResult:
         """Steps (c)-(e) of try_pair for the relative pose (R, t unit) with inliers
@@ -443,8 +606,8 @@ class TwoViewBootstrap:
         valid = inl & tri.valid
         n_valid = int(valid.sum())
 
-        # (d) Degeneracy: homography vs essential (pure rotation / planar at infinity).
-        h_over_e = self._homography_ratio(p_ref, p_cur, n_e)
+        # (d) Degeneracy: homography vs essential (pure rotation / planar at infinity),
+        # `h_over_e` (_homography).
         common = dict(n_common=n_common, median_flow_px=flow, h_over_e=h_over_e,
                       median_parallax_deg=med_par, n_inliers=n_valid, triangulation=tri)
         lasting = n_valid * float(kept_share) >= cfg.bootstrap_min_inliers
@@ -578,14 +741,16 @@ class TwoViewBootstrap:
 
     # ------------------------------------------------------------------ internals
 
-    def _homography_ratio(self, p_ref: np.ndarray, p_cur: np.ndarray, n_e: int) -> float:
-        """Homography RANSAC inliers divided by essential-matrix inliers."""
+    def _homography(self, p_ref: np.ndarray, p_cur: np.ndarray, n_e: int
+                    ) -> tuple[np.ndarray | None, float]:
+        """The homography of the pair (RANSAC; None when none is found) and its inliers
+        divided by the essential matrix's (0 then)."""
         thr = float(self.cfg.bootstrap_ransac_px) * _H_THRESHOLD_SCALE
         H, mask_h = cv2.findHomography(p_ref, p_cur, cv2.RANSAC, thr,
                                        confidence=_RANSAC_PROB)
         if H is None or mask_h is None or n_e == 0:
-            return 0.0
-        return float(mask_h.sum()) / float(n_e)
+            return None, 0.0
+        return H, float(mask_h.sum()) / float(n_e)
 
     @staticmethod
     def _refuse(reason: str, **kwargs: object) -> BootstrapResult:

@@ -179,6 +179,7 @@ class Initialisation:
                                                             stamp_ns, boot.median_flow_px),
                              [(ref.frame_index, ref.ids, ref.px_ideal, T_world_ref)])
         self._check_bootstrap_rotation(res, boot, est)
+        self._cover_rivals(res, boot.rival_rotvecs, T_world_ref[:3, :3])
         res.message = (f'bootstrapped: {boot.n_inliers} points, parallax '
                        f'{boot.median_parallax_deg:.1f} deg')
         return res
@@ -325,6 +326,20 @@ class Initialisation:
             self.world_cov.add_rotation_evidence(R @ d)
             self._published_cov = self._published_cov + self.world_cov.evidence
             res.pose_cov = res.pose_cov + self.world_cov.evidence
+
+    def _cover_rivals(self, res: FrameResult, rotvecs: np.ndarray, R_world_ref: np.ndarray
+                      ) -> None:
+        """The other poses of a flat scene that fit the bootstrap pair better than the
+        one taken (rotation vectors in the reference camera's frame, `rotvecs`): the map
+        may be either, so its covariance holds their difference for its life, as
+        evidence (docs/method.md §2.1.2); one pose reached from several starts counts
+        once."""
+        before = self.world_cov.evidence.copy()
+        for d in rotvecs:
+            self.world_cov.cover_rotation(R_world_ref @ d)
+        added = self.world_cov.evidence - before
+        self._published_cov = self._published_cov + added
+        res.pose_cov = res.pose_cov + added
 
     def _attach_pose(self, X_ref: np.ndarray, ref_stamp_ns: int) -> np.ndarray:
         """Where a two-view bootstrap attaches its map: the anchor (the world origin, or
