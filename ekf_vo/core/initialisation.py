@@ -323,9 +323,9 @@ class Initialisation:
         R = res.T_world_cam[:3, :3]
         C = C + R.T @ res.pose_cov[3:, 3:] @ R
         if float(d @ np.linalg.solve(C, d)) > _CHI2_3DOF_99:
+            before = self.world_cov.evidence.copy()
             self.world_cov.add_rotation_evidence(R @ d)
-            self._published_cov = self._published_cov + self.world_cov.evidence
-            res.pose_cov = res.pose_cov + self.world_cov.evidence
+            self._publish_evidence_since(res, before)
 
     def _cover_rivals(self, res: FrameResult, rotvecs: np.ndarray, R_world_ref: np.ndarray
                       ) -> None:
@@ -337,6 +337,12 @@ class Initialisation:
         before = self.world_cov.evidence.copy()
         for d in rotvecs:
             self.world_cov.cover_rotation(R_world_ref @ d)
+        self._publish_evidence_since(res, before)
+
+    def _publish_evidence_since(self, res: FrameResult, before: np.ndarray) -> None:
+        """The bootstrap frame's published covariance (and the one new points take)
+        holds the evidence added to world_cov since `before` (later frames get all of
+        it from WorldCovariance.compose)."""
         added = self.world_cov.evidence - before
         self._published_cov = self._published_cov + added
         res.pose_cov = res.pose_cov + added
