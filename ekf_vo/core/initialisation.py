@@ -14,9 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import geometry as geo
+from .bootstrap import BootstrapResult
 from .features import Tracks
 from .frame_result import MIN_VARIANCE, FrameResult, TrackingState
+from .map_uncertainty import point_consider_covariance, pose_point_jacobians
 from .orientation_only import fit_rotation
+from .pnp import solve_epnp
 from .rolling_shutter import rotation_to_stamp_time
 
 #: chi-square 3 dof, 99 %: a bootstrap rotation the orientation chain contradicts
@@ -164,7 +167,7 @@ class Initialisation:
             if boot.ok and strict:
                 boot = self._against_chain(boot, est)
             if boot.ok:
-                T_world_ref = self._attach_pose(boot.X_ref, ref.stamp_ns)
+                T_world_ref = self._attach_pose(boot, ref.stamp_ns)
                 T_world_cur = T_world_ref @ geo.invert_T(boot.T_cur_ref)
                 X_world = geo.transform_points(T_world_ref, boot.X_ref)
         timings['bootstrap'] = (time.perf_counter() - t) * 1e3
@@ -347,29 +350,75 @@ class Initialisation:
         self._published_cov = self._published_cov + added
         res.pose_cov = res.pose_cov + added
 
-    def _attach_pose(self, X_ref: np.ndarray, ref_stamp_ns: int) -> np.ndarray:
+    def _attach_pose(self, boot: BootstrapResult, ref_stamp_ns: int) -> np.ndarray:
         """Where a two-view bootstrap attaches its map: the anchor (the world origin, or
         where a re-bootstrap keeps the pose). Once orientation-only poses have been
-        published, turned to the orientation the chain gave the reference frame (or the
-        last one it knew, when the camera was translating then: uncertain by a turn at
-        init_angular_velocity_sigma since), and what the chain did not measure is added
-        to the anchor's covariance: its rotation covariance, and for each reference it
-        went through a translation below the bootstrap's parallax gate. Before any was
-        published the map goes where it always went."""
+        published, turned to the orientation the chain gave the reference frame; when
+        the camera was translating then (the reference has none), through a frame the
+        chain knew, resected against the new map (`_resect_known`), or else the
+        orientation stepped on to the reference or the last one known (uncertain by a
+        turn at init_angular_velocity_sigma since), whichever is the more certain. What
+        the chain did not measure is added to the anchor's covariance: its rotation
+        covariance, and for each reference it went through a translation below the
+        bootstrap's parallax gate. Before any was published the map goes where it always
+        went (docs/method.md §15.9)."""
         T = self._anchor_T_world_cam.copy()
         chain = self.orientation
         if chain is None or not self._orientation_published:
             return T
         R_ref, cov_ref = chain.reference_or_last(ref_stamp_ns,
                                                  self.cfg.init_angular_velocity_sigma)
+        if chain.reference is None:
+            resected = self._resect_known(boot)
+            if resected is not None and np.trace(resected[1]) < np.trace(cov_ref):
+                R_ref, cov_ref = resected
         extra = np.zeros((6, 6))
         T[:3, :3] = R_ref
         extra[3:, 3:] = cov_ref - chain.start_covariance
-        depth = geo.median_depth(X_ref, np.eye(4)) or 0.0
+        depth = geo.median_depth(boot.X_ref, np.eye(4)) or 0.0
         gate = np.radians(self.cfg.bootstrap_min_parallax_deg)
         extra[:3, :3] = chain.n_references * (np.tan(gate) * depth) ** 2 * np.eye(3)
         self.world_cov.widen_carried(extra)
         return T
+
+    def _resect_known(self, boot: BootstrapResult) -> tuple[np.ndarray, np.ndarray] | None:
+        """The reference frame's orientation (R_world_ref, 3x3 world covariance) through
+        a frame the orientation chain knew (OrientationChain.resectable), resected
+        against the bootstrap's map (EPnP in RANSAC + LM on the tracks it shares with the
+        map's points): the one that gives the smallest covariance, or None when none
+        shares enough tracks or every resection fails."""
+        c = self.cfg
+        K = self.camera.K
+        X_cov = None
+        best = None
+        for ids_k, b_k, R_world_k, cov_k in self.orientation.resectable():
+            _, i_k, i_p = np.intersect1d(ids_k, boot.point_ids, assume_unique=True,
+                                         return_indices=True)
+            front = b_k[i_k, 2] > 1e-6
+            i_k, i_p = i_k[front], i_p[front]
+            if len(i_k) < c.bootstrap_min_inliers:
+                continue
+            z = b_k[i_k, :2] / b_k[i_k, 2:3] @ K[:2, :2].T + K[:2, 2]
+            X = boot.X_ref[i_p]
+            pnp = solve_epnp(z, X, K, c.pixel_sigma_px, c.ransac_inlier_px)
+            if not pnp.ok or np.count_nonzero(pnp.inliers) < c.bootstrap_min_inliers:
+                continue
+            # the map's points are not exact: their triangulation noise (poses held)
+            # moves the resected pose too (map_uncertainty.py, item 1)
+            if X_cov is None:
+                X_cov = self.growth.two_view_covariances(boot.X_ref, np.eye(4),
+                                                          geo.invert_T(boot.T_cur_ref))
+            inl = pnp.inliers
+            J_pose, J_X, _ = pose_point_jacobians(K, pnp.T_world_cam, X[inl])
+            points = point_consider_covariance(J_pose, J_X,
+                                               np.full(len(J_X), c.pixel_sigma_px),
+                                               X_cov[i_p][inl])
+            R_world_ref = R_world_k @ pnp.T_world_cam[:3, :3].T
+            cov_ref = pnp.pose_cov[3:, 3:] + points[3:, 3:]
+            cov = cov_k + R_world_ref @ cov_ref @ R_world_ref.T
+            if best is None or np.trace(cov) < np.trace(best[1]):
+                best = (R_world_ref, cov)
+        return best
 
     def _start_tracking(self, res: FrameResult, gray: np.ndarray, tracks: Tracks,
                         px: np.ndarray, point_ids: np.ndarray, X_world: np.ndarray,

@@ -189,6 +189,7 @@ class OrientationChain:
         attaches) with its covariance."""
         self._start = (np.asarray(R_world_cam, float).copy(), np.asarray(cov_world).copy())
         self._ref: _Frame | None = None
+        self._known_ref: _Frame | None = None      # the last reference with an orientation
         self._prev: _Frame | None = None
         #: the orientation of the frame tracked before the last one (for the angular rate)
         self.previous: Orientation | None = None
@@ -312,7 +313,7 @@ class OrientationChain:
                 TRANSLATION_UNCONFIRMED_S or cur is None or cur.stepped is None:
             return None
         self._prev = _Frame(cur.ids, cur.b, cur.stepped, cur.stepped)
-        self._ref = self._last_good = self._prev
+        self._ref = self._last_good = self._known_ref = self._prev
         self.translation_seen = False
         self._unconfirmed_since_ns = self.failing_since_ns = None
         return cur.stepped
@@ -342,6 +343,24 @@ class OrientationChain:
             est.cov_world = est.cov_world + self.model_sigma_rad ** 2 * np.eye(3)
             self.n_references += 1
         self._ref = self._prev
+        if self._ref.est is not None:
+            self._known_ref = self._ref
+
+    def resectable(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Frames whose orientation a map made later can be attached through, by
+        resecting them against it: (track ids, unit bearings, R_world_cam, 3x3 world
+        covariance) of the last reference frame that had an orientation (its own
+        covariance: what its fit absorbed is in it) and of the last frame tracked with
+        one (its published covariance: with the translation its fit may have absorbed)."""
+        out = []
+        ref = self._known_ref
+        if ref is not None:
+            out.append((ref.ids, ref.b, ref.est.R_world_cam, ref.est.cov_world))
+        last = self._last_good
+        if last is not None and last is not ref:
+            out.append((last.ids, last.b, last.est.R_world_cam,
+                        self.published_covariance(last.est)))
+        return out
 
     @property
     def start_covariance(self) -> np.ndarray:
