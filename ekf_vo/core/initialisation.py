@@ -22,11 +22,18 @@ from .orientation_only import fit_rotation
 from .pnp import solve_epnp
 from .rolling_shutter import rotation_to_stamp_time
 
-#: chi-square 3 dof, 99 %: a bootstrap rotation the orientation chain contradicts
+#: chi-square 3 dof, 99 %: a bootstrap rotation the orientation chain contradicts, or a
+#: resection of a frame it knew (Initialisation._attach_pose)
 _CHI2_3DOF_99 = 11.34
 #: the bootstrap pair's motion took less than this share of its time: the camera stood
 #: still before (Initialisation._motion_time)
 _STOOD_STILL_SHARE = 0.5
+
+
+def _contradicts(d: np.ndarray, C: np.ndarray) -> bool:
+    """Whether two rotations that differ by the rotation vector d disagree beyond the
+    covariance C of that difference (chi-square 3 dof, 99 %)."""
+    return float(d @ np.linalg.solve(C, d)) > _CHI2_3DOF_99
 
 
 @dataclass
@@ -302,7 +309,7 @@ class Initialisation:
             boot.reason = 'its reference frame has no orientation from the tracks'
             return boot
         d, C = found
-        if float(d @ np.linalg.solve(C, d)) > _CHI2_3DOF_99:
+        if _contradicts(d, C):
             boot.ok = False
             boot.reason = (f'its rotation is {np.degrees(np.linalg.norm(d)):.1f} deg off '
                            f'the orientation published before the map')
@@ -324,8 +331,7 @@ class Initialisation:
             return
         d, C = found
         R = res.T_world_cam[:3, :3]
-        C = C + R.T @ res.pose_cov[3:, 3:] @ R
-        if float(d @ np.linalg.solve(C, d)) > _CHI2_3DOF_99:
+        if _contradicts(d, C + R.T @ res.pose_cov[3:, 3:] @ R):
             before = self.world_cov.evidence.copy()
             self.world_cov.add_rotation_evidence(R @ d)
             self._publish_evidence_since(res, before)
@@ -371,7 +377,11 @@ class Initialisation:
         if chain.reference is None:
             resected = self._resect_known(boot)
             if resected is not None and np.trace(resected[1]) < np.trace(cov_ref):
-                R_ref, cov_ref = resected
+                # a resection the stepped orientation contradicts is not trusted over it
+                # (a degenerate map can resect a frame wrongly with a small covariance)
+                d = geo.quat_to_rotvec(geo.matrix_to_quat(resected[0] @ R_ref.T))
+                if not _contradicts(d, cov_ref + resected[1]):
+                    R_ref, cov_ref = resected
         extra = np.zeros((6, 6))
         T[:3, :3] = R_ref
         extra[3:, 3:] = cov_ref - chain.start_covariance
