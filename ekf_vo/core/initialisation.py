@@ -424,8 +424,8 @@ class Initialisation:
                                                np.full(len(J_X), c.pixel_sigma_px),
                                                X_cov[i_p][inl])
             R_world_ref = R_world_k @ pnp.T_world_cam[:3, :3].T
-            cov_ref = pnp.pose_cov[3:, 3:] + points[3:, 3:]
-            cov = cov_k + R_world_ref @ cov_ref @ R_world_ref.T
+            cov_resected = pnp.pose_cov[3:, 3:] + points[3:, 3:]      # reference frame
+            cov = cov_k + R_world_ref @ cov_resected @ R_world_ref.T
             if best is None or np.trace(cov) < np.trace(best[1]):
                 best = (R_world_ref, cov)
         return best
