@@ -21,6 +21,7 @@ from ekf_vo.core.pipeline import VisualOdometry
 from ekf_vo.tools.synth import SynthConfig, render_sequence
 
 from .support.benchmarks import run_benchmark
+from .support.rendered import standing_first
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -117,13 +118,8 @@ def _first_bootstrap_after_standing(trajectory: str, seed: int, standing: int = 
     the frames (stamp, image, T_world_cam), the inputs of every try_pair, the camera,
     the config)."""
     cfg = SynthConfig(frames=60, seed=seed, trajectory=trajectory, **camera)
-    frames = list(render_sequence(cfg))
-    rng = np.random.default_rng([seed, 30])
-    dt = frames[1][0] - frames[0][0]
-    t0, im0, T0 = frames[0]
-    held = [(t0 + k * dt, np.clip(im0 + rng.normal(0.0, 2.0, im0.shape), 0, 255)
-             .astype(im0.dtype), T0) for k in range(standing)]
-    frames = held + [(t + standing * dt, im, T) for t, im, T in frames]
+    frames = standing_first(list(render_sequence(cfg)), standing,
+                            np.random.default_rng([seed, 30]))
     camera = PinholeCamera.from_camera_info({'width': cfg.width, 'height': cfg.height,
                                              'K': cfg.K(), 'D': cfg.D(),
                                              'distortion_model': 'plumb_bob'})

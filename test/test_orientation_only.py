@@ -11,6 +11,8 @@ from ekf_vo.core.orientation_only import MIN_INLIER_SHARE, fit_rotation, kabsch
 from ekf_vo.core.stream import Rejection, VoStream
 from ekf_vo.tools.synth import SynthConfig, render_sequence
 
+from .support.rendered import standing_first
+
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
 CAMERA = PinholeCamera(640, 480, K)
 
@@ -293,7 +295,7 @@ def test_a_camera_that_stands_then_moves_gets_its_map(trajectory):
     (t/d), which the bootstrap pair's parallax (t/d too) shows, and the map comes within
     a few frames instead of never (the chain held the bootstrap to a rotation it took for
     real). No published pose is outside its covariance."""
-    results, seq = _standing_first(trajectory, 0, 90, np.random.default_rng(1))
+    results, seq = _run_standing_first(trajectory, 0, 90, np.random.default_rng(1))
     assert sum(r.ok and r.orientation_only for r in results[:30]) >= 10
     located = [k for k, r in enumerate(results) if r.ok and not r.orientation_only]
     # without the standing, the map comes at frame 5 of the motion
@@ -302,19 +304,14 @@ def test_a_camera_that_stands_then_moves_gets_its_map(trajectory):
     assert np.all(_rotation_nees(results, seq) < 16.27)
 
 
-def _standing_first(trajectory: str, seed: int, frames: int, rng: np.random.Generator,
+def _run_standing_first(trajectory: str, seed: int, frames: int, rng: np.random.Generator,
                     standing: int = 30) -> tuple[list, list]:
     """The rendered `trajectory` (`frames` of it) whose first view is held for
     `standing` frames with fresh sensor noise (2 grey levels), as a robot waits when the
     node starts, through the stream: (every frame's result, the frames (stamp, image,
     T_world_cam))."""
     cfg = SynthConfig(frames=frames, seed=seed, trajectory=trajectory)
-    seq = list(render_sequence(cfg))
-    dt = seq[1][0] - seq[0][0]
-    t0, im0, T0 = seq[0]
-    held = [(t0 + k * dt, np.clip(im0 + rng.normal(0.0, 2.0, im0.shape), 0, 255)
-             .astype(np.uint8), T0) for k in range(standing)]
-    seq = held + [(t + standing * dt, im, T) for t, im, T in seq]
+    seq = standing_first(list(render_sequence(cfg)), standing, rng)
     info = {'width': cfg.width, 'height': cfg.height, 'K': cfg.K(), 'D': cfg.D(),
             'distortion_model': 'plumb_bob'}
     stream = _stream(info)
@@ -347,7 +344,7 @@ def test_a_robot_that_stood_then_drove_off_attaches_its_map_through_a_resection(
     covariance is not several times too large. Stepped on frame by frame with a
     translation prior per step, the map came 0.6-0.8 deg off with a sigma of 2.3 deg:
     a median NEES of 0.04-0.15 (bench.rotation_nees ground_robot_still, 11 seeds)."""
-    results, seq = _standing_first('ground_robot', seed, 150,
+    results, seq = _run_standing_first('ground_robot', seed, 150,
                                    np.random.default_rng([seed, 30]))
     located = [k for k, r in enumerate(results) if r.ok and not r.orientation_only]
     assert located and sum(r.ok and r.orientation_only for r in results[:located[0]]) >= 10

@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from ekf_vo.config import VoConfig
+from ekf_vo.core import geometry as geo
 from ekf_vo.core.map_uncertainty import relative_pose_covariance
 from ekf_vo.core.triangulation import TriangulationResult, triangulate_points
 
@@ -347,14 +348,11 @@ class EpipolarBasins:
             chi = self.chi(taken.cost, m.cost)
             if chi <= -_BASIN_CHI2 or not self._explains(m, taken):
                 continue                       # fits clearly worse, or its points do
-            d = _rotvec(m.R.T @ R)            # world frame: R1^T = Exp(d) R^T
+            # world frame: R1^T = Exp(d) R^T
+            d = geo.quat_to_rotvec(geo.matrix_to_quat(m.R.T @ R))
             if float(d @ np.linalg.solve(C, d)) > _DISTINCT_CHI2:
                 found.append((d, chi))
         return found
-
-
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    return cv2.Rodrigues(np.asarray(R, np.float64))[0].reshape(3)
 
 
 def epipolar_basins(R0: np.ndarray, t0: np.ndarray, p_ref: np.ndarray, p_cur: np.ndarray,
